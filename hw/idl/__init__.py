@@ -1,0 +1,1 @@
+"""Package data: the OMG IDL of the Go2 messages (``unitree_go.idl``)."""
