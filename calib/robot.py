@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import importlib.metadata
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 
 
-@lru_cache(maxsize=None)
+@cache
 def go2_urdf_path() -> Path:
     """Absolute path of ``go2.urdf`` inside the installed example-robot-data package."""
     try:
