@@ -1,0 +1,272 @@
+"""``a2i-calib``: plan an anti-noise excitation, solve a calibration from logs, simulate one.
+
+A thin layer over :mod:`calib` (and :mod:`sim` for the simulated subcommands, imported only
+there, so ``plan`` and ``solve`` run on a robot without MuJoCo). Bad input exits 2 with a
+one-line reason and writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from calib.atomic import write_text_atomic
+from calib.csvio import CalibInputError, read_encoders_csv, read_imu_csv
+from calib.joints import LEGS, check_leg
+
+EXIT_BAD_INPUT = 2
+
+
+class _Fail(Exception):
+    """A one-line reason to exit 2."""
+
+
+def _leg(s: str) -> str:
+    try:
+        return check_leg(s)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _positive(s: str) -> float:
+    try:
+        v = float(s)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {s!r}") from None
+    if not (np.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {s!r}")
+    return v
+
+
+def _say(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# ------------------------------------------------------------------------------------ plan
+def cmd_plan(args) -> int:
+    from calib.excitation import ExcitationConfig, plan_excitation
+
+    try:
+        cfg = ExcitationConfig(leg=args.leg, t_r=args.offset_range, periods=args.periods,
+                               n_basis=args.basis, seed=args.seed)
+    except ValueError as e:
+        raise _Fail(str(e)) from None
+    t0 = time.process_time()
+    plan = plan_excitation(cfg)
+    cpu = time.process_time() - t0
+    if plan.kappa > 1.02:
+        raise _Fail(f"the optimiser reached kappa {plan.kappa:.4f} > 1.02 for leg {args.leg}; "
+                    "try more basis functions (--basis) or another --seed")
+    plan.to_csv(args.out, rate_hz=args.rate)
+    lo, hi = plan.steady_window
+    print(f"leg {plan.leg}: kappa(Sigma_FF) = {plan.kappa:.5f} reached in {cpu:.2f} s CPU; "
+          f"f = {plan.f:.4f} rad/s, period {plan.period:.2f} s, {cfg.periods} periods, "
+          f"duration {plan.duration:.2f} s (steady {lo:.2f}-{hi:.2f} s); "
+          f"start pose (hip, thigh, calf) = {np.round(plan.q0, 4).tolist()} rad")
+    print(f"wrote {args.out} at {args.rate:g} Hz")
+    return 0
+
+
+# ----------------------------------------------------------------------------------- solve
+def _solver_config(max_offset: float):
+    from calib.solver import SolverConfig
+
+    try:
+        return SolverConfig(max_offset=max_offset)
+    except ValueError as e:
+        raise _Fail(str(e)) from None
+
+
+def cmd_solve(args) -> int:
+    from calib.kinematics import LegKinematics
+    from calib.pipeline import CalibrationRefused, calibrate_logs
+    from calib.result import format_report
+
+    try:
+        enc = read_encoders_csv(args.encoders, args.leg)
+        imu = read_imu_csv(args.imu)
+        kin = LegKinematics.from_urdf(args.urdf, leg=args.leg, foot_frame=args.foot_frame)
+        result, _ = calibrate_logs(enc, imu, kin, _solver_config(args.max_offset))
+    except (CalibInputError, ValueError) as e:
+        raise _Fail(str(e).splitlines()[0]) from None
+    except CalibrationRefused as e:
+        raise _Fail("refused: " + "; ".join(e.reasons)) from None
+    result.write(args.out)
+    print(format_report(result))
+    if enc.base_omega is None:
+        print("  note: no base_w*/base_q* columns: the base was assumed still")
+    print(f"wrote {args.out}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------ demo
+def _progress_printer(what: str):
+    """progress(fraction) callback printing at most every 20 % to stderr."""
+    last = [-1]
+
+    def show(frac: float) -> None:
+        step = int(frac * 5)
+        if step != last[0]:
+            last[0] = step
+            _say(f"      {what} {100 * frac:3.0f} %")
+
+    return show
+
+
+def _truth_dict(leg: str, rotation: np.ndarray, offset: float) -> dict:
+    return {leg: {"rotation_matrix": [[float(v) for v in r] for r in rotation],
+                  "time_offset_s": float(offset)}}
+
+
+def cmd_demo(args) -> int:
+    from calib.csvio import write_encoders_csv, write_imu_csv
+    from calib.excitation import ExcitationConfig, plan_excitation
+    from calib.motions import a2i_motion
+    from calib.pipeline import CalibrationRefused, calibrate_logs
+    from calib.result import format_report
+
+    try:
+        from sim.calibration_run import run_motion
+        from sim.sensors import random_mounting
+    except ImportError as e:
+        raise _Fail(f"the demo needs the simulator: pip install '.[sim]' ({e})") from None
+
+    out = Path(args.out)
+    leg = args.leg
+    _say(f"[1/4] planning the anti-noise excitation for {leg} ...")
+    plan = plan_excitation(ExcitationConfig(leg=leg, t_r=args.offset_range))
+    _say(f"      kappa = {plan.kappa:.5f}, {plan.duration:.1f} s of motion")
+    _say("[2/4] playing it on the simulated Go2 (MuJoCo, 1 kHz PD, base held) ...")
+    run = run_motion(a2i_motion(plan, 200.0), progress=_progress_printer("played"))
+    mount = random_mounting(args.seed, max_offset=min(0.2, 0.8 * args.offset_range),
+                            gyro_noise_deg=args.noise, rate=args.imu_rate)
+    imu = run.foot_imu(leg, mount)
+    enc_csv, imu_csv = out / f"{leg}_encoders.csv", out / f"{leg}_imu.csv"
+    write_encoders_csv(enc_csv, run.t, run.q, dq=run.dq, base_omega=run.base_gyro)
+    write_imu_csv(imu_csv, imu.stamps, imu.gyro, imu.accel)
+    _say(f"[3/4] logs written: {enc_csv} (500 Hz), {imu_csv} ({args.imu_rate:g} Hz, "
+         f"{args.noise:g} deg/s/sqrt(Hz), hidden mounting seed {args.seed})")
+    _say("[4/4] solving from the logs (the same path as `a2i-calib solve`) ...")
+    try:
+        result, _ = calibrate_logs(read_encoders_csv(enc_csv, leg), read_imu_csv(imu_csv),
+                                   config=_solver_config(args.offset_range))
+    except CalibrationRefused as e:
+        raise _Fail("refused: " + "; ".join(e.reasons)) from None
+    result.write(out / f"{leg}.json")
+    write_text_atomic(out / "sim_truth.json",
+                      json.dumps(_truth_dict(leg, mount.rotation, mount.time_offset), indent=2))
+    print(format_report(result, truth=(mount.rotation, mount.time_offset)))
+    print("  truth R_I^F rows: " + "  ".join(
+        "[" + " ".join(f"{v:+.6f}" for v in row) + "]" for row in mount.rotation))
+    print(f"  truth time offset: {mount.time_offset * 1e3:+.3f} ms")
+    print(f"wrote {out / f'{leg}.json'} and {out / 'sim_truth.json'}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------- bench
+def cmd_bench(args) -> int:
+    try:
+        from sim.table1 import render_markdown, run_table1
+    except ImportError as e:
+        raise _Fail(f"the bench needs the simulator: pip install '.[sim]' ({e})") from None
+    seeds = list(range(args.seeds))
+    legs = args.legs or list(LEGS)
+    t0 = time.time()
+    _say(f"Table I: {len(seeds)} seeds x {len(legs)} legs x 3 noise levels x 4 motions, "
+         f"{args.workers or 'all'} worker processes")
+    rows = run_table1(seeds, legs, workers=args.workers,
+                      progress=lambda i, n: _say(f"  simulated {i}/{n} motions "
+                                                 f"({time.time() - t0:.0f} s)"))
+    md = render_markdown(rows, seeds, time.time() - t0)
+    write_text_atomic(args.out, md)
+    print(md)
+    print(f"wrote {args.out}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------ main
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="a2i-calib",
+        description="Foot-IMU spatial-temporal calibration the A2I-Calib way "
+                    "(R_I^F: omega_F = R omega_I; t_d = t_I - t_E).")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("plan", help="optimise the anti-noise excitation for one leg",
+                       description="Optimise Theorem 1's basis coefficients so that "
+                                   "kappa(Sigma_FF) -> 1 within joint limits; write the joint "
+                                   "trajectory as CSV (t, q_<LEG>_<JOINT>, dq_<LEG>_<JOINT>).")
+    s.add_argument("--leg", type=_leg, required=True, help="FL, FR, RL or RR")
+    s.add_argument("--offset-range", type=_positive, default=0.5, metavar="S",
+                   help="time-offset search range t_r, s (period 8 t_r; default 0.5)")
+    s.add_argument("--periods", type=int, default=4, help="steady periods (default 4)")
+    s.add_argument("--basis", type=int, default=10, help="basis functions N (default 10)")
+    s.add_argument("--rate", type=_positive, default=200.0, help="CSV rate, Hz (default 200)")
+    s.add_argument("--seed", type=int, default=0, help="initial-guess seed (default 0)")
+    s.add_argument("--out", required=True, help="output CSV")
+    s.set_defaults(func=cmd_plan)
+
+    s = sub.add_parser("solve", help="calibrate from an encoder CSV and an IMU CSV",
+                       description="Calibrate one foot IMU from logs (formats: docs/formats.md). "
+                                   "Writes the result JSON atomically; exits 2 with a one-line "
+                                   "reason on malformed or degenerate input and writes nothing.")
+    s.add_argument("--encoders", required=True, help="encoder CSV (t, q_<LEG>_<JOINT>, ...)")
+    s.add_argument("--imu", required=True, help="foot IMU CSV (t, wx, wy, wz)")
+    s.add_argument("--leg", type=_leg, required=True, help="FL, FR, RL or RR")
+    s.add_argument("--max-offset", type=_positive, default=0.5, metavar="S",
+                   help="search |t_d| up to this, s (default 0.5)")
+    s.add_argument("--urdf", default=None, help="robot URDF (default: the Go2 of "
+                   "example-robot-data)")
+    s.add_argument("--foot-frame", default=None, help="foot frame in the URDF "
+                   "(default <LEG>_foot)")
+    s.add_argument("--out", required=True, help="result JSON")
+    s.set_defaults(func=cmd_solve)
+
+    s = sub.add_parser("demo", help="simulate a calibration in MuJoCo and solve it",
+                       description="Plan the excitation, play it on the simulated Go2 with a "
+                                   "hidden random IMU mounting, log CSVs, solve them, and print "
+                                   "the result beside the truth.")
+    s.add_argument("--leg", type=_leg, default="FL", help="leg (default FL)")
+    s.add_argument("--seed", type=int, default=7, help="hidden mounting seed (default 7)")
+    s.add_argument("--noise", type=_positive, default=0.03,
+                   help="gyro noise density, deg/s/sqrt(Hz) (default 0.03)")
+    s.add_argument("--imu-rate", type=_positive, default=400.0, help="IMU rate, Hz (default 400)")
+    s.add_argument("--offset-range", type=_positive, default=0.5, metavar="S",
+                   help="t_r, s (default 0.5)")
+    s.add_argument("--out", default="calibration/demo", help="output folder")
+    s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("bench", help="the paper's Table I in MuJoCo",
+                       description="4 legs x noise {0.006, 0.03, 0.06} deg/s/sqrt(Hz) x motions "
+                                   "{walk, spin, wave, A2I} x seeds; writes a markdown table.")
+    s.add_argument("--seeds", type=int, default=3, help="seeds (default 3)")
+    s.add_argument("--legs", type=_leg, nargs="*", default=None, help="subset of legs")
+    s.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    s.add_argument("--out", default="docs/results/table1.md", help="markdown output")
+    s.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    for name in ("periods", "basis", "seeds"):
+        if getattr(args, name, 1) is not None and getattr(args, name, 1) < 1:
+            parser.error(f"--{name} must be >= 1")
+    try:
+        return args.func(args)
+    except _Fail as e:
+        print(f"a2i-calib {args.command}: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print(f"a2i-calib {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
