@@ -3,7 +3,7 @@ PYTHON ?= python3
 VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
-EXTRAS ?= sim,deploy,dev
+EXTRAS ?= sim,deploy,train,dev
 
 .PHONY: demo test lint bench clean
 

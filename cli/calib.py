@@ -8,6 +8,7 @@ one-line reason and writes nothing.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -184,6 +185,9 @@ def cmd_bench(args) -> int:
                                                  f"({time.time() - t0:.0f} s)"))
     md = render_markdown(rows, seeds, time.time() - t0)
     write_text_atomic(args.out, md)
+    # The raw rows beside the table, so that other summaries can be drawn without re-simulating.
+    write_text_atomic(Path(args.out).with_suffix(".json"),
+                      json.dumps([dataclasses.asdict(r) for r in rows], indent=0))
     print(md)
     print(f"wrote {args.out}")
     return 0
