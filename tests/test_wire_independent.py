@@ -7,6 +7,7 @@ decoder cannot hide here.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import signal
@@ -105,7 +106,7 @@ def _parse_lowstate(buf: bytes) -> dict:
     qs = []
     for _ in range(20):
         take("B", 1)
-        q, dq, ddq, tau = take("4f", 4)
+        q, _dq, _ddq, _tau = take("4f", 4)
         take("3f", 4)
         take("B", 1)
         take("I", 4)
@@ -149,18 +150,18 @@ def _lowstate_c_words(buf: bytes) -> list[int]:
         c.extend(body[cdr:cdr + n])
         cdr += n
 
-    copy("2B", 1, 1); copy("B", 1, 1); copy("B", 1, 1)  # noqa: E702
-    copy("2I", 4, 4); copy("2I", 4, 4); copy("H", 2, 2)  # noqa: E702
-    copy("4f", 4, 4); copy("3f", 4, 4); copy("3f", 4, 4); copy("3f", 4, 4)  # noqa: E702
+    copy("2B", 1, 1); copy("B", 1, 1); copy("B", 1, 1)
+    copy("2I", 4, 4); copy("2I", 4, 4); copy("H", 2, 2)
+    copy("4f", 4, 4); copy("3f", 4, 4); copy("3f", 4, 4); copy("3f", 4, 4)
     copy("B", 1, 1)
     for _ in range(20):
-        copy("B", 1, 4); copy("7f", 4, 4); copy("B", 1, 1); copy("I", 4, 4)  # noqa: E702
+        copy("B", 1, 4); copy("7f", 4, 4); copy("B", 1, 1); copy("I", 4, 4)
         copy("2I", 4, 4)
-    copy("4B", 1, 4); copy("i", 4, 4); copy("H", 2, 2); copy("2B", 1, 1)  # noqa: E702
-    copy("2B", 1, 1); copy("15H", 2, 2)  # noqa: E702
-    copy("4h", 2, 2); copy("4h", 2, 2); copy("I", 4, 4); copy("40B", 1, 1)  # noqa: E702
-    copy("B", 1, 1); copy("f", 4, 4); copy("2B", 1, 1); copy("f", 4, 4)  # noqa: E702
-    copy("f", 4, 4); copy("4H", 2, 2); copy("I", 4, 4); copy("I", 4, 4)  # noqa: E702
+    copy("4B", 1, 4); copy("i", 4, 4); copy("H", 2, 2); copy("2B", 1, 1)
+    copy("2B", 1, 1); copy("15H", 2, 2)
+    copy("4h", 2, 2); copy("4h", 2, 2); copy("I", 4, 4); copy("40B", 1, 1)
+    copy("B", 1, 1); copy("f", 4, 4); copy("2B", 1, 1); copy("f", 4, 4)
+    copy("f", 4, 4); copy("4H", 2, 2); copy("I", 4, 4); copy("I", 4, 4)
     while len(c) % 4:
         c.append(0)
     return list(struct.unpack(f"<{len(c) // 4}I", bytes(c)))
@@ -221,7 +222,7 @@ def test_independent_client_at_the_wire(mock):
             words = _lowstate_c_words(b)
             assert _crc32_core(words[:-1]) == d["crc"]
             ticks.append(d["tick"])
-        steps = {b - a for a, b in zip(ticks, ticks[1:])}
+        steps = {b - a for a, b in itertools.pairwise(ticks)}
         assert steps == {2}, steps  # 500 Hz, tick in ms
         rate = (len(got) - 1) / (got[-1][0] - got[0][0])
         assert 100 < rate < 650, rate  # 500 Hz nominal; the exact rate is the mock tests' job
