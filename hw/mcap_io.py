@@ -24,7 +24,6 @@ from __future__ import annotations
 import json
 import os
 import struct
-import tempfile
 import warnings
 from pathlib import Path
 
@@ -32,6 +31,7 @@ import numpy as np
 from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
+from calib.atomic import atomic_output
 from hw.recorder import (
     EVENT_DTYPE,
     EVENT_TEXT_BYTES,
@@ -266,26 +266,14 @@ def write_mcap(path: str | os.PathLike, snapshot: RecordingSnapshot,
     session["_json_keys"] = json.dumps(sorted(json_keys))
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            writer = Writer(f, compression=comp)
-            writer.start(profile=PROFILE, library="a2i-calib hw.mcap_io")
-            channel_ids = _register(writer, streams, idl)
-            _write_messages(writer, streams, channel_ids)
-            writer.add_metadata("a2i/session", session)
-            writer.add_metadata("a2i/recording", recording)
-            writer.finish()
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_output(path) as f:
+        writer = Writer(f, compression=comp)
+        writer.start(profile=PROFILE, library="a2i-calib hw.mcap_io")
+        channel_ids = _register(writer, streams, idl)
+        _write_messages(writer, streams, channel_ids)
+        writer.add_metadata("a2i/session", session)
+        writer.add_metadata("a2i/recording", recording)
+        writer.finish()
     return path
 
 
