@@ -137,3 +137,347 @@ class MotorStrength(Effect):
     def __repr__(self) -> str:
         names = [MODEL_JOINT_NAMES[i] for i in self.indices]
         return f"MotorStrength(scale={self.scale.tolist()}, joints={names})"
+
+
+# ============================================================================ the effects library
+# Names of the library (docs/sim2real.md); ``Effect.name`` of each class below.
+EFFECT_NAMES: tuple[str, ...] = (
+    "latency", "motor_strength", "coulomb_friction", "viscous_friction", "armature", "backlash",
+    "link_mass", "foot_friction", "torque_limit", "imu_bias", "imu_misalignment",
+    "imu_time_offset", "packet_loss",
+)
+
+ActuationLatency.name = "latency"
+MotorStrength.name = "motor_strength"
+
+
+def _joint_indices(joints) -> np.ndarray:
+    """Model-order indices of ``joints`` (None = all 12; names like ``"FL_calf"`` or indices)."""
+    if joints is None:
+        return np.arange(NUM_MOTORS)
+    idx = np.array([MotorStrength._index(j) for j in joints], dtype=int)
+    if idx.size == 0:
+        raise ValueError("joints must name at least one joint (or be None for all)")
+    return idx
+
+
+def _per_joint(value, idx: np.ndarray, what: str, *, positive: bool = False) -> np.ndarray:
+    v = np.broadcast_to(np.asarray(value, dtype=float), idx.shape).copy()
+    ok = np.isfinite(v) & ((v > 0.0) if positive else (v >= 0.0))
+    if not np.all(ok):
+        raise ValueError(f"{what} must be finite and {'> 0' if positive else '>= 0'}, got {value!r}")
+    return v
+
+
+class _JointSpecEffect(Effect):
+    """Sets one MuJoCo joint attribute (MuJoCo's own modelling) on selected joints."""
+
+    attr = ""
+    what = ""
+
+    def __init__(self, value, joints=None) -> None:
+        self.indices = _joint_indices(joints)
+        self.value = _per_joint(value, self.indices, self.what)
+
+    def modify_spec(self, spec: mujoco.MjSpec) -> None:
+        for i, v in zip(self.indices, self.value, strict=True):
+            j = spec.joint(f"{MODEL_JOINT_NAMES[i]}_joint")
+            if self.attr == "damping":
+                d = np.array(j.damping, dtype=float).reshape(-1)
+                d[0] += v  # MuJoCo 4: linear term first, polynomial terms after
+                j.damping = d
+            else:
+                setattr(j, self.attr, float(getattr(j, self.attr)) + float(v))
+
+    def __repr__(self) -> str:
+        names = [MODEL_JOINT_NAMES[i] for i in self.indices]
+        return f"{type(self).__name__}({self.value.tolist()}, joints={names})"
+
+
+class CoulombFriction(_JointSpecEffect):
+    """Joint dry friction: MuJoCo ``frictionloss`` (N m) added on the selected joints."""
+
+    name = "coulomb_friction"
+    attr = "frictionloss"
+    what = "Coulomb friction torque (N m)"
+
+
+class ViscousFriction(_JointSpecEffect):
+    """Joint viscous friction: MuJoCo joint ``damping`` (N m s/rad) added on the selected joints."""
+
+    name = "viscous_friction"
+    attr = "damping"
+    what = "viscous friction (N m s/rad)"
+
+
+class Armature(_JointSpecEffect):
+    """Rotor inertia reflected through the gearbox: MuJoCo ``armature`` (kg m^2) added."""
+
+    name = "armature"
+    attr = "armature"
+    what = "armature (kg m^2)"
+
+
+class Backlash(Effect):
+    """Gear play (lost motion) of total width ``2 * half_width`` rad on the selected joints.
+
+    The encoder sits on the rotor, the link behind a gear with play: inside the play the motor's
+    spring term pushes nothing. Modelled as a dead zone on the PD position error,
+    ``kp * deadzone(q_des - q, half_width)`` replacing ``kp * (q_des - q)`` (the damping and
+    feed-forward terms are unchanged). MuJoCo has no native backlash (the documented pattern is
+    an extra hinge, which would change the joint layout every tool relies on), so this acts in
+    ``on_torque``. It follows the commands itself (``on_command``): list it after any effect
+    that delays or drops commands.
+    """
+
+    name = "backlash"
+
+    def __init__(self, half_width, joints=None) -> None:
+        self.indices = _joint_indices(joints)
+        self.half_width = _per_joint(half_width, self.indices, "backlash half width (rad)")
+        self._pending: list[MotorCommand] = []
+        self._active = MotorCommand.passive()
+
+    def reset(self, sim: Go2Sim) -> None:
+        self._pending = []
+        self._active = MotorCommand.passive()
+
+    def on_command(self, cmd: MotorCommand, sim: Go2Sim) -> MotorCommand:
+        self._pending.append(cmd)
+        self._pending.sort(key=lambda c: c.t_apply)
+        return cmd
+
+    def on_torque(self, tau: np.ndarray, sim: Go2Sim) -> np.ndarray:
+        t = sim.data.time + 1e-9
+        while self._pending and self._pending[0].t_apply <= t:
+            self._active = self._pending.pop(0)
+        c, i = self._active, self.indices
+        q = sim.data.qpos[-NUM_MOTORS:][i]
+        err = c.q_des[i] - q
+        dz = np.sign(err) * np.maximum(np.abs(err) - self.half_width, 0.0)
+        tau[i] -= c.kp[i] * (err - dz)
+        return tau
+
+    def __repr__(self) -> str:
+        names = [MODEL_JOINT_NAMES[i] for i in self.indices]
+        return f"Backlash({self.half_width.tolist()}, joints={names})"
+
+
+def _link_bodies(location: str) -> list[str]:
+    """Bodies of a link named by its joint (``"FR_calf"`` -> the calf and its fused foot) or
+    ``"base"``."""
+    if location == "base":
+        return ["base"]
+    name = location.removesuffix("_joint")
+    if name not in MODEL_JOINT_NAMES:
+        raise ValueError(f"unknown link {location!r}: expected 'base' or a joint like 'FR_calf'")
+    return [name, name.split("_")[0] + "_foot"] if name.endswith("_calf") else [name]
+
+
+class LinkMass(Effect):
+    """A link heavier or lighter than the URDF: mass and inertia times ``scale`` (> 0), and the
+    centre of mass shifted by ``com_shift`` (m, link frame). ``link``: ``"base"`` or a joint
+    name (``"FR_calf"`` = the link that joint moves; the calf includes the foot)."""
+
+    name = "link_mass"
+
+    def __init__(self, scale: float, link: str = "base", com_shift=(0.0, 0.0, 0.0)) -> None:
+        s = float(scale)
+        if not (np.isfinite(s) and s > 0.0):
+            raise ValueError(f"link mass scale must be finite and > 0, got {scale!r}")
+        self.scale = s
+        self.bodies = _link_bodies(link)
+        self.link = link
+        self.com_shift = np.asarray(com_shift, dtype=float).reshape(3)
+
+    def modify_spec(self, spec: mujoco.MjSpec) -> None:
+        for n in self.bodies:
+            b = spec.body(n)
+            b.mass = float(b.mass) * self.scale
+            b.inertia = np.asarray(b.inertia, dtype=float) * self.scale
+            b.ipos = np.asarray(b.ipos, dtype=float) + self.com_shift
+
+    def __repr__(self) -> str:
+        return f"LinkMass({self.scale!r}, link={self.link!r}, com_shift={self.com_shift.tolist()})"
+
+
+class FootFriction(Effect):
+    """Foot-ground sliding friction coefficient ``mu`` (MuJoCo takes the larger of the two
+    geoms' coefficients, so both the feet and the floor are set)."""
+
+    name = "foot_friction"
+
+    def __init__(self, mu: float) -> None:
+        m = float(mu)
+        if not (np.isfinite(m) and m > 0.0):
+            raise ValueError(f"foot friction must be finite and > 0, got {mu!r}")
+        self.mu = m
+
+    def modify_spec(self, spec: mujoco.MjSpec) -> None:
+        for g in spec.geoms:
+            if g.name == "floor" or g.name in {f"{leg}_foot" for leg in ("FL", "FR", "RL", "RR")}:
+                f = np.array(g.friction, dtype=float)
+                f[0] = self.mu
+                g.friction = f
+
+    def __repr__(self) -> str:
+        return f"FootFriction({self.mu!r})"
+
+
+class TorqueLimit(Effect):
+    """Torque saturation below the URDF effort limit, with voltage sag: the motor delivers at
+    most ``limit - droop * |dq|`` N m (>= 0) on the selected joints (droop N m s/rad models the
+    back-EMF of a sagging battery)."""
+
+    name = "torque_limit"
+
+    def __init__(self, limit, joints=None, droop=0.0) -> None:
+        self.indices = _joint_indices(joints)
+        self.limit = _per_joint(limit, self.indices, "torque limit (N m)", positive=True)
+        self.droop = _per_joint(droop, self.indices, "torque droop (N m s/rad)")
+
+    def on_torque(self, tau: np.ndarray, sim: Go2Sim) -> np.ndarray:
+        i = self.indices
+        dq = sim.data.qvel[-NUM_MOTORS:][i]
+        lim = np.maximum(self.limit - self.droop * np.abs(dq), 0.0)
+        tau[i] = np.clip(tau[i], -lim, lim)
+        return tau
+
+    def __repr__(self) -> str:
+        names = [MODEL_JOINT_NAMES[i] for i in self.indices]
+        return f"TorqueLimit({self.limit.tolist()}, joints={names}, droop={self.droop.tolist()})"
+
+
+class PacketLoss(Effect):
+    """Dropped and jittered command packets.
+
+    Each command is dropped with ``probability`` (the previous one stays active), drawn from the
+    simulation's ``rng``; surviving ones take effect ``U(0, jitter)`` s late. ``drop_times``
+    (s, sim send times) instead drops exactly the commands sent then (within 0.5 ms): the
+    deterministic form the diagnoser replays.
+    """
+
+    name = "packet_loss"
+
+    def __init__(self, probability: float = 0.0, jitter: float = 0.0, drop_times=None) -> None:
+        p, j = float(probability), float(jitter)
+        if not (0.0 <= p < 1.0):
+            raise ValueError(f"packet loss probability must be in [0, 1), got {probability!r}")
+        if not (np.isfinite(j) and j >= 0.0):
+            raise ValueError(f"jitter must be finite and >= 0 s, got {jitter!r}")
+        self.probability, self.jitter = p, j
+        self.drop_times = None if drop_times is None else np.sort(np.asarray(drop_times, float))
+
+    def on_command(self, cmd: MotorCommand, sim: Go2Sim) -> MotorCommand | None:
+        if self.drop_times is not None:
+            k = np.searchsorted(self.drop_times, cmd.t_sent - 5e-4)
+            if k < self.drop_times.size and abs(self.drop_times[k] - cmd.t_sent) <= 5e-4:
+                return None
+        elif self.probability > 0.0 and sim.rng.random() < self.probability:
+            return None
+        if self.jitter > 0.0:
+            return dataclasses.replace(cmd, t_apply=cmd.t_apply + sim.rng.uniform(0, self.jitter))
+        return cmd
+
+    def __repr__(self) -> str:
+        return f"PacketLoss({self.probability!r}, jitter={self.jitter!r})"
+
+
+# ---------------------------------------------------------------------------- body-IMU effects
+class ImuEffect(Effect):
+    """An effect on the body IMU's readings only (the dynamics are untouched).
+
+    :meth:`apply_imu` maps true samples to what the IMU reports: ``t`` (N,) s, ``gyro`` (N, 3)
+    rad/s and ``accel`` (N, 3) m/s^2 in the base frame, ``quat_wxyz`` (N, 4) base->world.
+    """
+
+    def apply_imu(self, t, gyro, accel, quat_wxyz):
+        return gyro, accel, quat_wxyz
+
+
+class ImuBias(ImuEffect):
+    """Constant gyro bias (rad/s, (3,)) and accelerometer bias (m/s^2, (3,))."""
+
+    name = "imu_bias"
+
+    def __init__(self, gyro_bias=(0.0, 0.0, 0.0), accel_bias=(0.0, 0.0, 0.0)) -> None:
+        self.gyro_bias = np.asarray(gyro_bias, dtype=float).reshape(3)
+        self.accel_bias = np.asarray(accel_bias, dtype=float).reshape(3)
+
+    def apply_imu(self, t, gyro, accel, quat_wxyz):
+        return np.asarray(gyro) + self.gyro_bias, np.asarray(accel) + self.accel_bias, quat_wxyz
+
+    def __repr__(self) -> str:
+        return f"ImuBias({self.gyro_bias.tolist()}, {self.accel_bias.tolist()})"
+
+
+def _rotvec_matrix(rv) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+    return Rotation.from_rotvec(np.asarray(rv, dtype=float).reshape(3)).as_matrix()
+
+
+class ImuMisalignment(ImuEffect):
+    """The IMU is mounted rotated by ``rotvec`` (rad, base frame) and its gyro reads ``scale``
+    times the rate: it reports ``scale * R.T @ omega`` and ``R.T @ f``, and an orientation of
+    ``q_base * R`` (its own frame to world)."""
+
+    name = "imu_misalignment"
+
+    def __init__(self, rotvec=(0.0, 0.0, 0.0), gyro_scale: float = 1.0) -> None:
+        self.rotvec = np.asarray(rotvec, dtype=float).reshape(3)
+        self.gyro_scale = float(gyro_scale)
+
+    def apply_imu(self, t, gyro, accel, quat_wxyz):
+        from scipy.spatial.transform import Rotation
+        r = _rotvec_matrix(self.rotvec)
+        g = self.gyro_scale * np.asarray(gyro) @ r
+        a = np.asarray(accel) @ r
+        q = np.asarray(quat_wxyz, dtype=float)
+        rq = Rotation.from_quat(q[:, [1, 2, 3, 0]]) * Rotation.from_rotvec(self.rotvec)
+        xyzw = rq.as_quat()
+        return g, a, xyzw[:, [3, 0, 1, 2]]
+
+    def __repr__(self) -> str:
+        return f"ImuMisalignment({self.rotvec.tolist()}, gyro_scale={self.gyro_scale!r})"
+
+
+class ImuTimeOffset(ImuEffect):
+    """The IMU sample stamped ``t`` describes the motion at ``t - seconds`` (it lags when > 0);
+    linear interpolation, ends held."""
+
+    name = "imu_time_offset"
+
+    def __init__(self, seconds: float) -> None:
+        s = float(seconds)
+        if not np.isfinite(s):
+            raise ValueError(f"IMU time offset must be finite, got {seconds!r}")
+        self.seconds = s
+
+    def apply_imu(self, t, gyro, accel, quat_wxyz):
+        t = np.asarray(t, dtype=float)
+        ts = t - self.seconds
+
+        def sh(x):
+            x = np.asarray(x, dtype=float)
+            return np.stack([np.interp(ts, t, x[:, k]) for k in range(x.shape[1])], axis=1)
+
+        q = sh(quat_wxyz)
+        return sh(gyro), sh(accel), q / np.linalg.norm(q, axis=1, keepdims=True)
+
+    def __repr__(self) -> str:
+        return f"ImuTimeOffset({self.seconds!r})"
+
+
+def apply_imu_effects(effects, t, gyro, accel, quat_wxyz):
+    """Apply every :class:`ImuEffect` in ``effects`` (in order) to body-IMU arrays."""
+    for e in effects:
+        if isinstance(e, ImuEffect):
+            gyro, accel, quat_wxyz = e.apply_imu(t, gyro, accel, quat_wxyz)
+    return gyro, accel, quat_wxyz
+
+
+__all__ += [
+    "EFFECT_NAMES", "Armature", "Backlash", "CoulombFriction", "FootFriction", "ImuBias",
+    "ImuEffect", "ImuMisalignment", "ImuTimeOffset", "LinkMass", "PacketLoss", "TorqueLimit",
+    "ViscousFriction", "apply_imu_effects",
+]

@@ -1,0 +1,141 @@
+"""The unmodelled-effects library (sim/effects.py): each effect moves the simulation the way
+its physics says, and the IMU effects transform readings as documented."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from sim.effects import (
+    EFFECT_NAMES,
+    ActuationLatency,
+    Armature,
+    Backlash,
+    CoulombFriction,
+    FootFriction,
+    ImuBias,
+    ImuMisalignment,
+    ImuTimeOffset,
+    LinkMass,
+    MotorStrength,
+    PacketLoss,
+    TorqueLimit,
+    ViscousFriction,
+    apply_imu_effects,
+)
+from sim.go2 import Go2Sim, SimConfig, stand_pose
+
+CALF = 2  # FL_calf, model order
+
+
+def _run(effects, q_des=None, kp=20.0, kd=0.5, tau_ff=0.0, steps=300, base="fixed"):
+    sim = Go2Sim(SimConfig(base=base, effects=effects))
+    sim.reset(stand_pose())
+    q = stand_pose() if q_des is None else q_des
+    sim.set_command(q, 0.0, kp, kd, tau_ff)
+    qs, dqs = [], []
+    for _ in range(steps):
+        sim.step()
+        qs.append(sim.q)
+        dqs.append(sim.dq)
+    return sim, np.array(qs), np.array(dqs)
+
+
+def _step_target():
+    q = stand_pose()
+    q[CALF] += 0.3
+    return q
+
+
+def test_names_and_classes():
+    for cls in (ActuationLatency, MotorStrength, CoulombFriction, ViscousFriction, Armature,
+                Backlash, LinkMass, FootFriction, TorqueLimit, PacketLoss, ImuBias,
+                ImuMisalignment, ImuTimeOffset):
+        assert cls.name in EFFECT_NAMES
+
+
+def test_coulomb_friction_holds_a_joint_against_a_small_torque():
+    ff = np.zeros(12)
+    ff[CALF] = 0.3
+    _, q0, _ = _run([], kp=0.0, kd=0.0, tau_ff=ff, steps=200)
+    _, q1, _ = _run([CoulombFriction(1.0, joints=["FL_calf"])], kp=0.0, kd=0.0, tau_ff=ff,
+                    steps=200)
+    moved0 = abs(q0[-1, CALF] - stand_pose()[CALF])
+    moved1 = abs(q1[-1, CALF] - stand_pose()[CALF])
+    assert moved1 < 0.3 * moved0
+    with pytest.raises(ValueError):
+        CoulombFriction(-1.0)
+
+
+def test_viscous_friction_and_armature_slow_a_step_response():
+    target = _step_target()
+    _, _, d0 = _run([], q_des=target, steps=150)
+    _, _, d1 = _run([ViscousFriction(0.3, joints=["FL_calf"])], q_des=target, steps=150)
+    _, q2, _ = _run([Armature(0.03, joints=["FL_calf"])], q_des=target, steps=150)
+    peak0 = np.abs(d0[:, CALF]).max()
+    assert np.abs(d1[:, CALF]).max() < 0.8 * peak0
+    # armature: slower start (smaller displacement after 20 ms)
+    _, q0, _ = _run([], q_des=target, steps=20)
+    assert abs(q2[19, CALF] - stand_pose()[CALF]) < 0.8 * abs(q0[-1, CALF] - stand_pose()[CALF])
+    # the other joints are untouched
+    assert np.abs(d1[:, 5] - d0[:, 5]).max() < 1e-3
+
+
+def test_backlash_and_link_mass_increase_the_gravity_sag():
+    _, q0, _ = _run([], kp=10.0, kd=0.5, steps=600)
+    _, q1, _ = _run([Backlash(0.03, joints=["FL_thigh"])], kp=10.0, kd=0.5, steps=600)
+    _, q2, _ = _run([LinkMass(3.0, "FL_thigh")], kp=10.0, kd=0.5, steps=600)
+    sag0 = abs(q0[-1, 1] - stand_pose()[1])
+    assert abs(q1[-1, 1] - stand_pose()[1]) > sag0 + 0.01
+    assert abs(q2[-1, 1] - stand_pose()[1]) > 1.5 * sag0
+    sim = Go2Sim(SimConfig(base="fixed", effects=[LinkMass(2.0, "FL_calf")]))
+    nominal = Go2Sim(SimConfig(base="fixed"))
+    b = sim.model.body("FL_calf").id
+    assert sim.model.body_mass[b] == pytest.approx(2.0 * nominal.model.body_mass[b])
+    with pytest.raises(ValueError):
+        LinkMass(1.2, "FL_knee")
+
+
+def test_torque_limit_caps_the_motor():
+    target = _step_target()
+    target[5] += 0.3  # FR_calf too
+    sim, _, _ = _run([TorqueLimit(2.0, joints=["FL_calf"])], q_des=target, kp=60.0, steps=5)
+    assert abs(sim.tau[CALF]) <= 2.0 + 1e-9
+    assert abs(sim.tau[5]) > 2.0  # FR_calf: not limited
+
+
+def test_packet_loss_drops_commands():
+    sim = Go2Sim(SimConfig(base="fixed", effects=[PacketLoss(0.5)], seed=3))
+    kept = 0
+    for k in range(200):
+        sim.set_command(stand_pose() + 1e-3 * k, 0.0, 20.0, 0.5, 0.0)
+        sim.step(2)
+        kept += sim.command.q_des[0] == pytest.approx(stand_pose()[0] + 1e-3 * k)
+    assert 70 < kept < 130
+    det = Go2Sim(SimConfig(base="fixed", effects=[PacketLoss(drop_times=[0.0])]))
+    det.set_command(stand_pose(), 0.0, 20.0, 0.5, 0.0)
+    det.step()
+    np.testing.assert_array_equal(det.command.kp, 0.0)
+
+
+def test_foot_friction_sets_the_floor_and_feet():
+    sim = Go2Sim(SimConfig(base="free", effects=[FootFriction(0.3)]))
+    m = sim.model
+    assert m.geom_friction[m.geom("floor").id][0] == pytest.approx(0.3)
+    assert m.geom_friction[m.geom("FL_foot").id][0] == pytest.approx(0.3)
+
+
+def test_imu_effects_transform_readings():
+    t = np.arange(0, 1, 0.002)
+    gyro = np.stack([np.sin(2 * np.pi * t), np.cos(2 * np.pi * t), 0 * t], 1)
+    acc = np.tile([0.0, 0.0, 9.81], (t.size, 1))
+    quat = np.tile([1.0, 0, 0, 0], (t.size, 1))
+    g, a, _ = ImuBias([0.1, 0, 0]).apply_imu(t, gyro, acc, quat)
+    np.testing.assert_allclose(g - gyro, np.tile([0.1, 0, 0], (t.size, 1)))
+    rv = np.array([0.0, 0.05, 0.0])
+    g, a, q = ImuMisalignment(rv).apply_imu(t, gyro, acc, quat)
+    r = Rotation.from_rotvec(rv).as_matrix()
+    np.testing.assert_allclose(a[0], r.T @ acc[0])
+    np.testing.assert_allclose(q[0], Rotation.from_rotvec(rv).as_quat()[[3, 0, 1, 2]], atol=1e-12)
+    g, _, _ = apply_imu_effects([ImuTimeOffset(0.01)], t, gyro, acc, quat)
+    k = 100
+    assert g[k, 0] == pytest.approx(np.sin(2 * np.pi * (t[k] - 0.01)), abs=2e-3)

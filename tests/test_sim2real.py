@@ -1,0 +1,132 @@
+"""Sim-to-real diagnosis: readers (CSV, MCAP), replay, a latency and a null case, the CLI's
+JSON schema and report."""
+
+import json
+
+import numpy as np
+import pytest
+
+from sim.effects import ActuationLatency
+from sim2real.cli import main
+from sim2real.diagnose import DiagnoseConfig, diagnose
+from sim2real.recording import read_csv, read_mcap_recording, write_csv
+from sim2real.replay import Replayer, make_windows
+from sim2real.synth import SynthConfig, synthesize, write_mcap_recording
+
+
+@pytest.fixture(scope="module")
+def short_null():
+    return synthesize([], SynthConfig(mount="suspended", duration=3.0, seed=5))
+
+
+@pytest.fixture(scope="module")
+def short_latency():
+    return synthesize([ActuationLatency(0.015)],
+                      SynthConfig(mount="suspended", duration=3.0, seed=6))
+
+
+# ---------------------------------------------------------------------------- CSV reader
+def _write(tmp_path, rec, name="rec"):
+    return write_csv(rec, tmp_path / f"{name}.csv")
+
+
+def _one_line_error(path, match, **kw):
+    with pytest.raises(ValueError, match=match) as exc:
+        read_csv(path, **kw)
+    assert "\n" not in str(exc.value)
+
+
+def test_csv_round_trip(tmp_path, short_null):
+    p = _write(tmp_path, short_null)
+    back = read_csv(p)
+    np.testing.assert_allclose(back.q, short_null.q, atol=1e-8)
+    np.testing.assert_allclose(back.cmd_t, short_null.cmd_t, atol=1e-9)
+    assert back.mount == "suspended"
+    assert json.loads(p.with_suffix(".json").read_text()) == {"mount": "suspended"}
+
+
+def test_csv_errors_are_one_line(tmp_path, short_null):
+    p = _write(tmp_path, short_null)
+    text = p.read_text().splitlines()
+    # missing json
+    p.with_suffix(".json").unlink()
+    _one_line_error(p, "mount")
+    p.with_suffix(".json").write_text('{"mount": "table"}')
+    _one_line_error(p, "suspended")
+    p.with_suffix(".json").write_text('{"mount": "ground"}')
+    # missing column
+    header = text[0].split(",")
+    k = header.index("cmd_kp_FR_hip")
+    bad = tmp_path / "bad.csv"
+    bad.with_suffix(".json").write_text('{"mount": "ground"}')
+    bad.write_text("\n".join(",".join(c for i, c in enumerate(r.split(",")) if i != k)
+                             for r in text) + "\n")
+    _one_line_error(bad, "cmd_kp_FR_hip")
+    # non-numeric value
+    rows = list(text)
+    rows[5] = rows[5].replace(rows[5].split(",")[3], "abc", 1)
+    bad.write_text("\n".join(rows) + "\n")
+    _one_line_error(bad, "non-numeric")
+    # time not increasing
+    rows = list(text)
+    rows[3], rows[4] = rows[4], rows[3]
+    bad.write_text("\n".join(rows) + "\n")
+    _one_line_error(bad, "increasing")
+    _one_line_error(tmp_path / "nope.csv", "no such file")
+    assert main(["diagnose", str(tmp_path / "nope.csv"), "--quiet"]) == 2
+
+
+# ---------------------------------------------------------------------------- MCAP input
+def test_mcap_input(tmp_path, short_latency):
+    p = tmp_path / "rec.mcap"
+    write_mcap_recording(short_latency, p)
+    back = read_mcap_recording(p)
+    assert back.mount == "suspended"
+    np.testing.assert_allclose(back.q, short_latency.q, atol=1e-6)  # float32 on the wire
+    np.testing.assert_allclose(back.cmd_t, short_latency.cmd_t, atol=1e-9)
+    np.testing.assert_allclose(back.cmd["q"], short_latency.cmd["q"], atol=1e-6)
+    assert back.mount == "suspended"
+    assert read_mcap_recording(p, mount="ground").mount == "ground"
+
+
+# ---------------------------------------------------------------------------- replay
+def test_replay_reproduces_a_null_recording(short_null):
+    p = Replayer(short_null).run([], make_windows(short_null, 0.5))
+    err = np.abs(p.q[p.mask] - short_null.q[p.mask]).max()
+    assert err < 2e-3  # encoder quantisation and float32 only
+    lat = synthesize([ActuationLatency(0.015)], SynthConfig(mount="suspended", duration=3.0,
+                                                            seed=5))
+    p2 = Replayer(lat).run([], make_windows(lat, 0.5))
+    assert np.abs(p2.q[p2.mask] - lat.q[p2.mask]).max() > 10 * err
+
+
+# ---------------------------------------------------------------------------- diagnosis
+def test_null_case_is_no_significant_gap(short_null):
+    d = diagnose(short_null, DiagnoseConfig())
+    assert not d.significant_gap
+    assert d.to_json()["effects"] == []
+
+
+def test_latency_case_via_cli_json_and_report(tmp_path, short_latency):
+    csv_path = _write(tmp_path, short_latency, "lat")
+    out_json = tmp_path / "out.json"
+    out_html = tmp_path / "out.html"
+    assert main(["diagnose", str(csv_path), "--json", str(out_json), "--report",
+                 str(out_html), "--quiet"]) == 0
+    doc = json.loads(out_json.read_text())
+    assert set(doc) >= {"significant_gap", "gap_before", "effects"}
+    assert isinstance(doc["significant_gap"], bool) and doc["significant_gap"]
+    assert isinstance(doc["gap_before"], float)
+    for e in doc["effects"]:
+        assert set(e) >= {"name", "location", "parameters", "ci", "gap_after_heldout"}
+        assert isinstance(e["location"], list)
+        for k, v in e["parameters"].items():
+            lo, hi = e["ci"][k]
+            assert lo <= v <= hi
+    top = doc["effects"][0]
+    assert top["name"] == "latency" and top["location"] == ["all"]
+    assert top["parameters"]["seconds"] == pytest.approx(0.015, abs=0.003)
+    assert top["gap_after_heldout"] < 0.5 * doc["gap_before"]
+    page = out_html.read_text()
+    assert page.startswith("<!DOCTYPE html>") and "data:image/png;base64," in page
+    assert "latency" in page
