@@ -47,7 +47,7 @@ import binascii
 import math
 import struct
 
-from hw.imu_protocol import SEQ_MOD, ImuFrame, SeqTracker
+from hw.imu_protocol import SEQ_MOD, ImuFrame, StreamDecoder
 
 SYNC = b"\x5a\xa5"
 TAG_IMU = 0x91
@@ -107,7 +107,7 @@ def encode_payload(payload: bytes) -> bytes:
     return head + struct.pack("<H", crc) + payload
 
 
-class HipnucDecoder:
+class HipnucDecoder(StreamDecoder):
     """Streaming decoder of HiPNUC frames yielding ``ImuFrame`` (SI units).
 
     Same interface and counters as ``hw.imu_protocol.FrameDecoder``. Frames
@@ -132,51 +132,9 @@ class HipnucDecoder:
         self.node_id = node_id
         self.node_id_from_packet = node_id_from_packet
         self.rate_hz = rate_hz
-        self._buf = bytearray()
-        self.frames = 0
-        self.crc_errors = 0
-        self.length_errors = 0
-        self.invalid_frames = 0
-        self.unknown_packets = 0
-        self.bytes_discarded = 0
-        self.bytes_fed = 0
-        self.bytes_consumed = 0  # bytes of CRC-valid packets, decoded or skipped
-        self._seq = SeqTracker()
+        super().__init__()
         self._counter: dict[int, int] = {}
         self._seq_anchor: dict[int, tuple[int, int]] = {}  # node -> (ts_ms, seq)
-
-    @property
-    def seq_gaps(self) -> dict[int, int]:
-        return self._seq.gaps
-
-    @property
-    def buffered(self) -> int:
-        return len(self._buf)
-
-    def stats(self) -> dict:
-        return {
-            "frames": self.frames,
-            "crc_errors": self.crc_errors,
-            "length_errors": self.length_errors,
-            "invalid_frames": self.invalid_frames,
-            "unknown_packets": self.unknown_packets,
-            "bytes_discarded": self.bytes_discarded,
-            "bytes_fed": self.bytes_fed,
-            "bytes_consumed": self.bytes_consumed,
-            "seq_gaps": dict(self._seq.gaps),
-            "seq_restarts": self._seq.restarts,
-        }
-
-    def feed(self, data: bytes | bytearray | memoryview) -> list[ImuFrame]:
-        self._buf += data
-        self.bytes_fed += len(data)
-        return self._decode(final=False)
-
-    def finish(self) -> list[ImuFrame]:
-        out = self._decode(final=True)
-        self.bytes_discarded += len(self._buf)
-        self._buf.clear()
-        return out
 
     def _seq_for(self, node: int, ts_ms: int) -> int:
         if self.rate_hz is None:

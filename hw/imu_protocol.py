@@ -145,18 +145,18 @@ class SeqTracker:
         self.gaps[node] = self.gaps.get(node, 0) + step - 1
 
 
-class FrameDecoder:
-    """Streaming decoder of A2I frames; feed arbitrary chunks, get whole frames.
+class StreamDecoder:
+    """What every serial IMU decoder shares: the byte buffer, the counters, feed and finish.
 
-    Counters (all monotonic): ``frames`` accepted, ``crc_errors``,
-    ``length_errors`` (impossible length for the type, or beyond MAX_PAYLOAD),
-    ``invalid_frames`` (CRC fine but a non-finite float), ``unknown_packets``
-    (CRC-valid packet of a type this version does not know: skipped whole),
-    ``bytes_discarded`` and per-node ``seq_gaps``. Invariant:
-    bytes_fed == bytes_consumed + bytes_discarded + buffered.
+    Counters (all monotonic): ``frames`` accepted, ``crc_errors``, ``length_errors``
+    (impossible length for the type, or beyond the protocol's maximum), ``invalid_frames``
+    (CRC fine but a non-finite float), ``unknown_packets`` (CRC-valid packet of a type the
+    decoder does not know: skipped whole), ``bytes_discarded`` and per-node ``seq_gaps``.
+    Invariant: bytes_fed == bytes_consumed + bytes_discarded + buffered. Subclasses implement
+    ``_decode(final)``, which consumes ``self._buf`` and returns the frames found.
     """
 
-    clock_wrap_us: int | None = None  # u64 microseconds: never wraps in practice
+    clock_wrap_us: int | None = None
 
     def __init__(self) -> None:
         self._buf = bytearray()
@@ -201,14 +201,24 @@ class FrameDecoder:
     def finish(self) -> list[ImuFrame]:
         """End of stream: reject incomplete candidates, return frames they hid.
 
-        A garbage sync announcing a long unknown packet makes ``feed`` wait for
-        its bytes; at the end of a finite stream (a log file) call this so real
-        frames behind such a candidate are not left in the buffer.
+        A garbage sync announcing a long packet makes ``feed`` wait for its bytes; at the end
+        of a finite stream (a log file) call this so real frames behind such a candidate are
+        not left in the buffer.
         """
         out = self._decode(final=True)
         self.bytes_discarded += len(self._buf)
         self._buf.clear()
         return out
+
+    def _decode(self, final: bool) -> list[ImuFrame]:
+        raise NotImplementedError
+
+
+class FrameDecoder(StreamDecoder):
+    """Streaming decoder of A2I frames; feed arbitrary chunks, get whole frames (counters:
+    :class:`StreamDecoder`)."""
+
+    clock_wrap_us: int | None = None  # u64 microseconds: never wraps in practice
 
     def _decode(self, final: bool) -> list[ImuFrame]:
         buf = self._buf
