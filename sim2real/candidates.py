@@ -61,8 +61,12 @@ def _effort(location: str) -> float:
     return float(EFFORT_LIMIT[["hip", "thigh", "calf"].index(location.split("_")[1])])
 
 
-def dynamic_candidates(location: str, mount: str) -> list[Candidate]:
-    """The dynamic candidates that make sense at ``location`` (a joint name or ``"all"``)."""
+def dynamic_candidates(location: str, mount: str, peak_torque: float | None = None) -> list[Candidate]:
+    """The dynamic candidates that make sense at ``location`` (a joint name or ``"all"``).
+
+    peak_torque: the largest torque (N m) the joint at ``location`` is seen to need in the
+    recording; a torque limit is searched below 1.2 times it (above, it never binds and the
+    cost is flat), else up to the effort limit."""
     a = np.array
     j = _joints(location)
     out = [
@@ -84,11 +88,19 @@ def dynamic_candidates(location: str, mount: str) -> list[Candidate]:
             out.append(Candidate("foot_friction", "feet", ("mu",), a([0.05]), a([1.5]),
                                  lambda x: [fx.FootFriction(x[0])], a([0.8]), spec=True))
     else:
+        if mount == "ground":
+            # standing, the contacts carry most of any torque residual to the calves: a gap
+            # that looks local there may still be a command latency of every motor
+            out.insert(0, Candidate("latency", "all", ("seconds",), a([0.0]), a([0.06]),
+                                    lambda x: [fx.ActuationLatency(x[0])], a([0.0]),
+                                    grid=0.001))
         lim = _effort(location)
+        if peak_torque is not None and np.isfinite(peak_torque) and peak_torque > 0:
+            lim = min(lim, 1.2 * float(peak_torque))
         out += [
             Candidate("backlash", location, ("half_width",), a([0.0]), a([0.08]),
                       lambda x: [fx.Backlash(x[0], joints=j)], a([0.0])),
-            Candidate("torque_limit", location, ("limit",), a([0.3]), a([lim]),
+            Candidate("torque_limit", location, ("limit",), a([min(0.3, 0.05 * lim)]), a([lim]),
                       lambda x: [fx.TorqueLimit(x[0], joints=j)], a([lim])),
             Candidate("link_mass", location, ("scale",), a([0.2]), a([5.0]),
                       lambda x: [fx.LinkMass(x[0], location)], a([1.0]), spec=True),

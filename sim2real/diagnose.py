@@ -51,9 +51,9 @@ MIN_REDUCTION = 0.3  # fraction of the held-out gap the best effect must remove
 MIN_EXTRA = 0.15  # further fraction of the original gap an added effect must remove
 TORQUE_SHARE_LOCAL = 0.45
 # Joint-channel gap below which no dynamic effect is fitted (screening), per mount: on the ground
-# the re-synchronisation (estimated contact penetration, base velocity from the legs) alone
-# leaves about 0.04 (measured on null recordings, docs/sim2real.md)
-DYN_SCREEN = {"suspended": 0.005, "ground": 0.06}  # one joint's share of the torque residual that makes a gap local
+# the re-synchronisation (base state settled by the burn-in, sim2real.replay) alone leaves
+# about 0.03 on null recordings (docs/sim2real.md)
+DYN_SCREEN = {"suspended": 0.005, "ground": 0.045}
 
 
 @dataclass
@@ -203,6 +203,18 @@ def _mass_fn(rec: Recording):
         return mm[np.ix_(sdk_to_model(np.arange(12)), sdk_to_model(np.arange(12)))]
 
     return mass
+
+
+def _peak_torque(rec: Recording) -> np.ndarray:
+    """(12,) SDK order, N m: the largest torque each motor is seen to need, from the PD law on
+    the recorded state and commands, and from the estimated torques when recorded (a motor
+    that saturates shows its plateau there, the PD law the demand)."""
+    c = rec.cmd
+    pd = c["kp"] * (c["q"] - rec.q) + c["kd"] * (c["dq"] - rec.dq) + c["tau"]
+    peak = np.percentile(np.abs(pd), 99.5, axis=0)
+    if rec.tau is not None:
+        peak = np.maximum(peak, np.percentile(np.abs(rec.tau), 99.5, axis=0))
+    return peak
 
 
 def _fit_scalar(f: Callable[[float], float], lo: float, hi: float, grid: float | None,
@@ -455,7 +467,10 @@ def diagnose(rec: Recording, config: DiagnoseConfig | None = None) -> Diagnosis:
                  "location": location}
     cands: list[Candidate] = []
     if gap_dyn > DYN_SCREEN[rec.mount]:
-        cands += dynamic_candidates(location, rec.mount)
+        peak = None
+        if location != "all":
+            peak = float(_peak_torque(rec)[SDK_JOINT_NAMES.index(location)])
+        cands += dynamic_candidates(location, rec.mount, peak)
     imu_ok = gap_imu > MIN_GAP / 2
     _progress(cfg, f"screening: joint gap -> {'location ' + location if cands else 'none'}; "
                    f"body-IMU gap -> {'IMU candidates' if imu_ok else 'none'}")

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import mujoco
 import numpy as np
+from scipy.signal import savgol_filter
 
 from calib.joints import MODEL_LEGS, NUM_MOTORS, model_to_sdk, sdk_to_model
 from sim.effects import Effect, ImuEffect, apply_imu_effects
@@ -36,7 +37,10 @@ from sim2real.recording import CMD_FIELDS, Recording
 __all__ = ["Prediction", "Replayer", "make_windows"]
 
 LOOKBACK = 0.07  # s of commands re-issued before a window start
-SETTLE_GROUND = 0.03  # s after a ground re-sync left out of the comparison
+BURN_IN = 0.1  # s before a ground window start during which the base settles on its contacts
+FOOT_LOADED = 10.0  # foot_force above which a foot is on the floor (docs/sim2real.md)
+OBS_KP, OBS_KD = 100.0, 0.0  # N m/rad, N m s/rad: burn-in observer (kd small: the explicit
+# integration of a swinging calf, about 4e-3 kg m^2, is unstable above 2 I / dt in total damping)
 CONTACT_SINK = 0.002  # m: the feet's soft-contact penetration of the standing Go2 (about 40 N each)
 
 
@@ -81,6 +85,15 @@ class Replayer:
         self._models: dict[str, mujoco.MjModel] = {}
         # the fixed base cannot turn: its IMU reads the same every sample
         self._static_imu: np.ndarray | None = None
+        # feet loaded (model leg order) where the recording has foot forces
+        self._loaded = (None if rec.foot_force is None
+                        else rec.foot_force[:, [1, 0, 3, 2]] > FOOT_LOADED)
+        # ground burn-in: the joints follow a lightly smoothed recording (quantisation and
+        # velocity noise would shake the free base)
+        self._n_burn = max(1, round(BURN_IN / rec.sample_period))
+        win = min(9, rec.n - (1 - rec.n % 2))
+        self._q_smooth = savgol_filter(self.q_m, win, 2, axis=0)
+        self._dq_smooth = savgol_filter(self.dq_m, win, 2, axis=0)
 
     # ------------------------------------------------------------------ one replay
     def run(self, effects: Sequence[Effect] = (), windows: Sequence[tuple[int, int]] = (),
@@ -111,16 +124,13 @@ class Replayer:
         mask = np.zeros(n, bool)
         failed = 0
         ground = self.base == "free"
-        # on the ground the contacts need a few ms to take the weight after a re-sync (the
-        # feet's penetration is only estimated): those samples are not compared
-        settle = 1 if not ground else max(1, round(SETTLE_GROUND / rec.sample_period))
         for i0, i1 in windows:
             try:
-                self._window(sim, i0, i1, q, dq, gyro, acc, contact, ground)
-                mask[i0 + settle:i1] = True
+                first = self._window(sim, i0, i1, q, dq, gyro, acc, contact, ground)
+                mask[first + 1:i1] = True
             except RuntimeError:
                 failed += 1
-                mask[i0 + settle:i1] = True  # a diverged window counts, with the state it held
+                mask[i0 + 1:i1] = True  # a diverged window counts, with the state it held
                 last = np.nan_to_num(q[i0], nan=0.0)
                 q[i0:i1] = np.where(np.isnan(q[i0:i1]), last, q[i0:i1])
                 dq[i0:i1] = np.nan_to_num(dq[i0:i1], nan=0.0)
@@ -179,6 +189,8 @@ class Replayer:
         sim.reset(self.q_m[i0], base_pos=[0, 0, 0], base_quat_wxyz=[1, 0, 0, 0])
         mujoco.mj_kinematics(m, d)
         feet = np.array([d.site_xpos[m.site(f"{leg}_foot").id] for leg in MODEL_LEGS])
+        if self._loaded is not None and self._loaded[i0].sum() == 3:
+            feet = feet[self._loaded[i0]]  # rocking on three feet: their plane is the floor
         c = feet - feet.mean(axis=0)
         nrm = np.linalg.svd(c)[2][2]
         if nrm[2] > 0:  # the normal points from the feet towards the base (base frame +z)
@@ -193,10 +205,16 @@ class Replayer:
         ax = axis / s
         return np.concatenate(([np.cos(ang / 2)], np.sin(ang / 2) * ax))
 
-    def _window(self, sim, i0, i1, q, dq, gyro, acc, contact, ground) -> None:
+    def _window(self, sim, i0, i1, q, dq, gyro, acc, contact, ground) -> int:
+        """Replay samples ``i0 .. i1 - 1``; returns the first sample compared (the one after the
+        release of the joints, see :data:`BURN_IN`)."""
         rec, d, dt = self.rec, sim.data, self.dt
-        self._resync(sim, i0)
-        t0 = float(rec.t[i0])
+        burn = ground and rec.base_pos is None
+        ib = max(0, i0 - self._n_burn) if burn else i0
+        release = max(i0, ib + self._n_burn) if burn else i0
+        release = min(release, i1 - 1)
+        self._resync(sim, ib)
+        t0 = float(rec.t[ib])
         ct = self.cmd_t
         first = int(np.searchsorted(ct, t0 - LOOKBACK, side="left"))
         last = int(np.searchsorted(ct, t0 + 1e-9, side="right"))  # commands at or before t0
@@ -208,27 +226,57 @@ class Replayer:
         c_next = last
         steps_done = 0
         ts = rec.t
-        for i in range(i0, i1):
+        t_rel = float(ts[release])
+        jq = slice(d.qpos.size - NUM_MOTORS, d.qpos.size)
+        jv = slice(d.qvel.size - NUM_MOTORS, d.qvel.size)
+        for i in range(ib, i1):
             target = round((ts[i] - t0) / dt)
+            pinned = i <= release and burn
             # commands sent before this sample's step; one stamped at the sample acts after it
             while c_next < ct.size:
                 cs = round((ct[c_next] - t0) / dt)
                 if cs >= target:
                     break
                 if cs > steps_done:
-                    sim.run(cs - steps_done)
+                    self._advance(sim, steps_done, cs, t0, pinned, jq, jv, t_rel)
                     steps_done = cs
                 self._issue(sim, c_next)
                 c_next += 1
             if target > steps_done:
-                sim.run(target - steps_done)
+                self._advance(sim, steps_done, target, t0, pinned, jq, jv, t_rel)
                 steps_done = target
+            if i < release:
+                continue
             q[i] = sim.q
             dq[i] = sim.dq
             if ground:
                 gyro[i] = sim.base_ang_vel
                 acc[i] = sim.base_specific_force
                 contact[i] = sim.foot_contact_forces > 1.0
+        return release
+
+    def _advance(self, sim: Go2Sim, s0: int, s1: int, t0: float, pinned: bool, jq, jv,
+                 t_release: float = 0.0) -> None:
+        """Physics steps ``s0 .. s1 - 1`` after ``t0``; ``pinned`` (burn-in): a joint-space
+        observer torque pulls the joints towards the (smoothed) recording, fading out towards
+        ``t_release``, while the base and the contacts move freely."""
+        d = sim.data
+        if not pinned:
+            d.qfrc_applied[jv] = 0.0
+            sim.run(s1 - s0)
+            return
+        ts = self.rec.t
+        for s in range(s0, s1):
+            t = t0 + s * self.dt
+            k = int(np.clip(np.searchsorted(ts, t) - 1, 0, ts.size - 2))
+            w = float(np.clip((t - ts[k]) / (ts[k + 1] - ts[k]), 0.0, 1.0))
+            qr = (1 - w) * self._q_smooth[k] + w * self._q_smooth[k + 1]
+            vr = (1 - w) * self._dq_smooth[k] + w * self._dq_smooth[k + 1]
+            left = max(t_release - t, 0.0)
+            alpha = min(1.0, left / (0.5 * BURN_IN))
+            d.qfrc_applied[jv] = alpha * (OBS_KP * (qr - d.qpos[jq]) + OBS_KD * (vr - d.qvel[jv]))
+            sim.run(1)
+        d.qfrc_applied[jv] = 0.0
 
     def _issue(self, sim: Go2Sim, c: int) -> None:
         cm = self.cmd_m

@@ -35,7 +35,8 @@ __all__ = ["SynthConfig", "excitation", "recording_to_snapshot", "synthesize", "
 class SynthConfig:
     """mount "suspended" | "ground"; duration s; seed; state_rate, cmd_rate Hz; noise levels:
     dq_noise rad/s, tau_noise N m, gyro_noise rad/s/sqrt(Hz), accel_noise m/s^2/sqrt(Hz); q is
-    quantised to the :class:`sim.sensors.EncoderModel` default step."""
+    quantised to the :class:`sim.sensors.EncoderModel` default step. base_truth: keep the true
+    base position and velocity (the motion-capture columns ``base_p*``, ``base_v*``)."""
 
     mount: str = "suspended"
     duration: float = 12.0
@@ -46,6 +47,7 @@ class SynthConfig:
     tau_noise: float = 0.05
     gyro_noise: float = 0.0005
     accel_noise: float = 0.002
+    base_truth: bool = False
 
 
 def excitation(mount: str, duration: float, cmd_rate: float, seed: int):
@@ -119,6 +121,8 @@ def synthesize(effects: list[Effect] | tuple = (), config: SynthConfig | None = 
     acc = np.zeros((n, 3))
     quat = np.zeros((n, 4))
     ff = np.zeros((n, 4))
+    bpos = np.zeros((n, 3))
+    bvel = np.zeros((n, 3))
     cmd_rows = {f: np.zeros((n, NUM_MOTORS)) for f in CMD_FIELDS}
     current = {f: np.zeros(NUM_MOTORS) for f in CMD_FIELDS}
     k = 0
@@ -131,6 +135,8 @@ def synthesize(effects: list[Effect] | tuple = (), config: SynthConfig | None = 
             gyro[k], acc[k], quat[k] = sim.base_ang_vel, sim.base_specific_force, sim.base_quat_wxyz
             if base == "free":
                 ff[k] = sim.foot_contact_forces
+                bpos[k] = sim.base_pos
+                bvel[k] = sim.base_rotation @ sim.base_lin_vel
             for f in CMD_FIELDS:
                 cmd_rows[f][k] = current[f]
             k += 1
@@ -152,6 +158,8 @@ def synthesize(effects: list[Effect] | tuple = (), config: SynthConfig | None = 
         t=t, q=model_to_sdk(q_meas), dq=model_to_sdk(dq_meas), cmd=sdk, cmd_t=cmd_t,
         cmd_events=cmd_ev, base_quat=quat, base_gyro=gyro, base_acc=acc, mount=cfg.mount,
         tau=model_to_sdk(tau_meas), foot_force=None if base == "fixed" else ff[:, [1, 0, 3, 2]],
+        base_pos=bpos if cfg.base_truth and base == "free" else None,
+        base_vel=bvel if cfg.base_truth and base == "free" else None,
         source="synth",
     )
 

@@ -130,3 +130,39 @@ def test_latency_case_via_cli_json_and_report(tmp_path, short_latency):
     page = out_html.read_text()
     assert page.startswith("<!DOCTYPE html>") and "data:image/png;base64," in page
     assert "latency" in page
+
+
+# ---------------------------------------------------------------------------- ground replay
+def test_ground_replay_burn_in_settles_the_contacts():
+    """On the ground, each window starts after a burn-in in which the base settles on its
+    contacts: a null recording replays close to the recording, a 20 ms latency clearly not."""
+    from sim2real import metrics as mt
+
+    cfg = SynthConfig(mount="ground", duration=2.0, seed=3)
+    null = synthesize([], cfg)
+    lat = synthesize([ActuationLatency(0.02)], cfg)
+    gaps = []
+    for rec in (null, lat):
+        cs = mt.channel_set(rec)
+        windows = make_windows(rec, 0.5)
+        p = Replayer(rec).run([], windows)
+        assert p.failed == 0
+        # the first window loses its burn-in, the others compare from their start
+        assert not p.mask[: windows[0][0] + 10].any() and p.mask[windows[1][0] + 1]
+        gaps.append(mt.gap(mt.normalised_residual(cs, mt.pred_matrix(p), p.mask), cs.noise))
+    assert gaps[0] < 0.045  # the ground re-synchronisation floor (docs/sim2real.md)
+    assert gaps[1] > 2 * gaps[0]
+
+
+def test_torque_limit_search_stays_where_the_limit_binds():
+    from sim2real.candidates import dynamic_candidates
+    from sim2real.diagnose import _peak_torque
+
+    rec = synthesize([], SynthConfig(mount="suspended", duration=1.0, seed=2))
+    peak = _peak_torque(rec)
+    assert peak.shape == (12,) and np.all(peak > 0)
+    c = {x.name: x for x in dynamic_candidates("FL_calf", "suspended", float(peak[5]))}
+    tl = c["torque_limit"]
+    assert tl.hi[0] == pytest.approx(1.2 * peak[5]) and 0 < tl.lo[0] < tl.hi[0]
+    assert "latency" not in c
+    assert "latency" in {x.name for x in dynamic_candidates("FL_calf", "ground", 3.0)}
