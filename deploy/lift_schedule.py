@@ -1,0 +1,179 @@
+"""Joint targets of the lifted leg during a calibration, the same in training and on board.
+
+Pure numpy + ``calib`` (no torch, no mujoco). After the lift command for ``leg`` is given
+(time ``t = 0``), the phases follow each other:
+
+========  ==============================================================================
+shift     ``[0, shift)``: the policy alone; it moves the body over the other three feet
+          (the leg is still on the ground). No targets.
+lift      quintic blend from ``q_start`` (the leg's joints when shift ended) to the
+          excitation start pose ``plan.q0`` (``calib.excitation.TRIPOD_LIFT_POSE_LEG``).
+hold      hold ``plan.q0`` (the body settles on the tripod).
+excite    the anti-noise trajectory ``calib.excitation.ExcitationPlan`` of the leg (built once
+          from ``t_r``, ``n_basis``, ``periods`` and ``seed``, cached), which starts and ends
+          at ``plan.q0`` with zero velocity.
+lower     quintic blend from ``plan.q0`` back to ``q_start``.
+done      the policy alone again (deploy goes on to LOWER -> STAND; training clears the lift
+          command). No targets.
+========  ==============================================================================
+
+While targets exist, the lifted leg's three motors get ``q_des``, ``dq_des`` and this
+schedule's ``kp`` / ``kd`` (the policy's actions for that leg are ignored, but they still feed
+``previous_actions``). Joint triples are (hip, thigh, calf) in the leg's own URDF signs, rad.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from calib.excitation import ExcitationConfig, ExcitationPlan, plan_excitation
+from calib.joints import check_leg
+
+__all__ = ["PHASES", "LegTarget", "LiftSchedule", "blend_targets"]
+
+PHASES: tuple[str, ...] = ("shift", "lift", "hold", "excite", "lower", "done")
+
+
+def _smooth(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Quintic smoothstep on [0, 1] (clipped) and its derivative in x."""
+    x = np.clip(x, 0.0, 1.0)
+    return x**3 * (10 - 15 * x + 6 * x**2), 30 * x**2 * (1 - x) ** 2
+
+
+def blend_targets(t, durations, q_start, q_lift, q_exc, dq_exc):
+    """Vectorised phase logic (used by :class:`LiftSchedule` and by the training env).
+
+    t: (N,) s since the lift command. durations: (N, 5) or (5,) s of shift, lift, hold, excite,
+    lower. q_start, q_lift: (N, 3) rad. q_exc, dq_exc: (N, 3) the excitation plan evaluated at
+    ``t - (shift + lift + hold)`` (rad, rad/s). Returns (q_des (N, 3), dq_des (N, 3),
+    phase (N,) int index into :data:`PHASES`); ``q_des`` is NaN in shift and done.
+    """
+    t = np.asarray(t, dtype=float)
+    d = np.broadcast_to(np.asarray(durations, dtype=float), t.shape + (5,))
+    ends = np.cumsum(d, axis=-1)
+    phase = (t[..., None] >= ends).sum(-1)  # 0..5
+    q_start = np.asarray(q_start, dtype=float)
+    q_lift = np.asarray(q_lift, dtype=float)
+    # lift: q_start -> q_lift over d1
+    w1, dw1 = _smooth((t - ends[..., 0]) / d[..., 1])
+    q_l = q_start + w1[..., None] * (q_lift - q_start)
+    dq_l = (dw1 / d[..., 1])[..., None] * (q_lift - q_start)
+    # lower: q_lift -> q_start over d4
+    w4, dw4 = _smooth((t - ends[..., 3]) / d[..., 4])
+    q_d = q_lift + w4[..., None] * (q_start - q_lift)
+    dq_d = (dw4 / d[..., 4])[..., None] * (q_start - q_lift)
+    p = phase[..., None]
+    q_des = np.where(p == 1, q_l, np.where(p == 2, q_lift, np.where(p == 3, q_exc, q_d)))
+    dq_des = np.where(p == 1, dq_l, np.where(p == 2, 0.0, np.where(p == 3, dq_exc, dq_d)))
+    none = (p == 0) | (p == 5)
+    q_des = np.where(none, np.nan, q_des)
+    dq_des = np.where(none, np.nan, dq_des)
+    return q_des, dq_des, phase
+
+
+@dataclass(frozen=True)
+class LegTarget:
+    """Targets of the lifted leg's three motors now. q_des rad, dq_des rad/s, kp N m/rad, kd
+    N m s/rad (hip, thigh, calf; leg's own URDF signs); phase one of :data:`PHASES`.
+    ``q_des``/``dq_des`` are None in shift and done (the policy commands the leg).
+    """
+
+    phase: str
+    q_des: np.ndarray | None
+    dq_des: np.ndarray | None
+    kp: float
+    kd: float
+
+
+@dataclass
+class LiftSchedule:
+    """Phase durations (s), the lifted leg's PD gains, and the excitation settings.
+
+    shift, lift, hold, lower: s. kp N m/rad, kd N m s/rad: gains of the lifted leg's motors
+    while targets exist. t_r (s), n_basis, periods, seed: :class:`calib.excitation.ExcitationConfig`
+    of each leg's plan (other settings at their defaults).
+    """
+
+    shift: float = 1.0
+    lift: float = 0.6
+    hold: float = 0.5
+    lower: float = 0.6
+    kp: float = 40.0
+    kd: float = 1.0
+    t_r: float = 0.5
+    n_basis: int = 10
+    periods: int = 4
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for k in ("shift", "lift", "hold", "lower"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{k} must be a positive duration (s), got {v}")
+        if not (self.kp > 0 and self.kd >= 0):
+            raise ValueError("kp must be > 0 and kd >= 0")
+        self._plans: dict[str, ExcitationPlan] = {}
+
+    # ------------------------------------------------------------------ metadata
+    @classmethod
+    def from_metadata(cls, d: Mapping) -> LiftSchedule:
+        """From the policy JSON's ``lift_schedule`` object (unknown keys raise ValueError)."""
+        names = {f for f in cls.__dataclass_fields__ if not f.startswith("_")}
+        extra = set(d) - names
+        if extra:
+            raise ValueError(f"unknown lift_schedule keys: {sorted(extra)}")
+        return cls(**{k: d[k] for k in d})
+
+    def to_metadata(self) -> dict:
+        """The JSON ``lift_schedule`` object (plain floats and ints)."""
+        return {k: v for k, v in asdict(self).items() if not k.startswith("_")}
+
+    # ------------------------------------------------------------------ plans and phases
+    def excitation_config(self, leg: str) -> ExcitationConfig:
+        return ExcitationConfig(leg=check_leg(leg), t_r=self.t_r, n_basis=self.n_basis,
+                                periods=self.periods, seed=self.seed)
+
+    def plan(self, leg: str) -> ExcitationPlan:
+        """The leg's excitation plan (optimised on first use, ~0.1-0.4 s, then cached)."""
+        leg = check_leg(leg)
+        if leg not in self._plans:
+            self._plans[leg] = plan_excitation(self.excitation_config(leg))
+        return self._plans[leg]
+
+    def durations(self, leg: str) -> np.ndarray:
+        """(5,) s: shift, lift, hold, excite, lower."""
+        return np.array([self.shift, self.lift, self.hold, self.plan(leg).duration, self.lower])
+
+    def total(self, leg: str) -> float:
+        """Time from the command to the start of ``done``, s."""
+        return float(self.durations(leg).sum())
+
+    def phase(self, leg: str, t: float) -> str:
+        """Phase name at ``t`` s after the lift command."""
+        ends = np.cumsum(self.durations(leg))
+        return PHASES[int((float(t) >= ends).sum())]
+
+    def targets(self, leg: str, t: float, q_start) -> LegTarget:
+        """Targets of ``leg`` at ``t`` s after the lift command.
+
+        q_start: (3,) rad, the leg's joint positions when the shift phase ended (the caller
+        latches them at the first call in ``lift``; during ``shift`` pass the current ones).
+        """
+        if not np.isfinite(t) or t < 0:
+            raise ValueError(f"t must be a finite time >= 0 s, got {t}")
+        qs = np.asarray(q_start, dtype=float)
+        if qs.shape != (3,) or not np.all(np.isfinite(qs)):
+            raise ValueError("q_start must be 3 finite joint angles (rad)")
+        plan = self.plan(leg)
+        d = self.durations(leg)
+        te = float(t) - d[:3].sum()
+        q_exc = plan.positions([te])
+        dq_exc = plan.velocities([te])
+        q, dq, ph = blend_targets(np.array([float(t)]), d, qs[None], plan.q0[None], q_exc, dq_exc)
+        name = PHASES[int(ph[0])]
+        if name in ("shift", "done"):
+            return LegTarget(name, None, None, self.kp, self.kd)
+        return LegTarget(name, q[0], dq[0], self.kp, self.kd)

@@ -1,0 +1,139 @@
+"""``a2i-train``: train, export and evaluate the tripod calibration-action policy.
+
+  a2i-train tripod [--iterations N] [--seed S] [--num-envs N] [--resume CKPT] [--run-dir D]
+                   [--export policies/NAME]
+  a2i-train export CHECKPOINT --out policies/NAME
+  a2i-train eval policies/NAME.onnx [--episodes 100] [--legs FL,FR,RL,RR] [--no-write]
+  a2i-train pack OUTDIR            (compiled model + plan pool for a machine without the URDF)
+
+Checkpoints go to ``runs/<run>/model_<it>.pt`` (``runs/`` is not committed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+def _tripod(a) -> int:
+    import torch
+
+    from policy_train.config import TrainConfig
+    from policy_train.runner import Trainer
+
+    if a.iterations < 1:
+        raise SystemExit("--iterations must be >= 1")
+    cfg = TrainConfig()
+    if a.resume:
+        d = torch.load(a.resume, weights_only=False, map_location="cpu")
+        cfg = TrainConfig.from_dict(d["train_config"])
+    if a.num_envs is not None:
+        cfg.env.num_envs = a.num_envs
+    if a.plans_per_leg is not None:
+        cfg.env.plans_per_leg = a.plans_per_leg
+    if a.save_interval is not None:
+        cfg.ppo.save_interval = a.save_interval
+    if a.model_file is not None:
+        cfg.env.model_file = a.model_file
+    if a.plan_pool is not None:
+        cfg.env.plan_pool_file = a.plan_pool
+    if a.steps_per_env is not None:
+        cfg.ppo.num_steps_per_env = a.steps_per_env
+    run_dir = Path(a.run_dir or f"runs/tripod_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
+    t0 = time.time()
+    tr = Trainer(cfg, run_dir, seed=a.seed, log=lambda s: print(s, flush=True))
+    if a.resume:
+        tr.load(a.resume)
+        print(f"resumed from {a.resume} at iteration {tr.iteration}", flush=True)
+    tr.total_iterations = a.total_iterations or (tr.iteration + a.iterations)
+    print(f"tripod: {cfg.env.num_envs} envs, run dir {run_dir}, setup {time.time() - t0:.1f} s",
+          flush=True)
+    tr.learn(a.iterations, max_seconds=None if a.max_minutes is None else 60 * a.max_minutes)
+    ckpt = run_dir / f"model_{tr.iteration}.pt"
+    print(f"saved {ckpt}", flush=True)
+    if a.export:
+        from policy_train.export import export_policy
+
+        onnx_path, json_path = export_policy(ckpt, a.export)
+        print(f"exported {onnx_path} and {json_path}", flush=True)
+    return 0
+
+
+def _export(a) -> int:
+    from policy_train.export import export_policy
+
+    onnx_path, json_path = export_policy(a.checkpoint, a.out)
+    print(f"exported {onnx_path} and {json_path}")
+    return 0
+
+
+def _pack(a) -> int:
+    """Write the compiled training model and a plan pool, for a machine without the URDF /
+    example-robot-data (then train there with --model-file / --plan-pool)."""
+    import numpy as np
+
+    from policy_train.config import EnvConfig
+    from policy_train.env import PlanPool
+    from policy_train.model import TrainModel
+
+    c = EnvConfig()
+    out = Path(a.outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    TrainModel(c.physics_dt, c.kp, c.kd).save(out / "go2_train.mjb")
+    PlanPool(a.plans_per_leg, c.t_r_range, c.n_basis, c.train_periods, c.physics_dt,
+             np.random.default_rng(a.seed)).save(out / "pool.npz")
+    print(f"wrote {out / 'go2_train.mjb'} and {out / 'pool.npz'}")
+    return 0
+
+
+def _eval(a) -> int:
+    from policy_train.evaluate import evaluate_policy
+
+    legs = tuple(s.strip().upper() for s in a.legs.split(",")) if a.legs else None
+    evaluate_policy(a.onnx, episodes=a.episodes, legs=legs, seed=a.seed,
+                    write=not a.no_write, results_path=a.results)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="a2i-train", description=__doc__.split("\n")[0])
+    sub = p.add_subparsers(dest="cmd", required=True)
+    t = sub.add_parser("tripod", help="train the tripod calibration-action policy (PPO)")
+    t.add_argument("--iterations", type=int, default=600)
+    t.add_argument("--total-iterations", type=int, default=None,
+                   help="planned total (sets where phase 2 starts); default: this run's end")
+    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--num-envs", type=int, default=None)
+    t.add_argument("--plans-per-leg", type=int, default=None)
+    t.add_argument("--steps-per-env", type=int, default=None)
+    t.add_argument("--save-interval", type=int, default=None)
+    t.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this")
+    t.add_argument("--model-file", default=None, help="compiled training model (.mjb)")
+    t.add_argument("--plan-pool", default=None, help="precomputed excitation plan pool (.npz)")
+    t.add_argument("--resume", default=None, help="checkpoint to continue from")
+    t.add_argument("--run-dir", default=None)
+    t.add_argument("--export", default=None, help="after training, export to this path stem")
+    e = sub.add_parser("export", help="export a checkpoint to ONNX + JSON")
+    e.add_argument("checkpoint")
+    e.add_argument("--out", required=True, help="path stem, e.g. policies/tripod_v1")
+    v = sub.add_parser("eval", help="evaluate an exported policy (onnxruntime)")
+    v.add_argument("onnx")
+    v.add_argument("--episodes", type=int, default=100)
+    v.add_argument("--legs", default=None)
+    v.add_argument("--seed", type=int, default=1)
+    v.add_argument("--no-write", action="store_true", help="do not write results files")
+    v.add_argument("--results", default="docs/results/policy.md")
+    k = sub.add_parser("pack", help="compiled model + plan pool for a remote training machine")
+    k.add_argument("outdir")
+    k.add_argument("--plans-per-leg", type=int, default=8)
+    k.add_argument("--seed", type=int, default=1)
+    a = p.parse_args(argv)
+    return {"tripod": _tripod, "export": _export, "eval": _eval, "pack": _pack}[a.cmd](a)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,137 @@
+"""Configuration of the tripod environment, its rewards, domain randomisation and PPO.
+
+Everything is plain dataclasses so that the whole configuration can be written into the policy
+JSON (``train_config``). Units SI; ranges are (low, high) drawn uniformly. Design decisions are
+explained in ``docs/policy-training.md``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+__all__ = ["DRConfig", "EnvConfig", "PPOConfig", "RewardConfig", "TrainConfig"]
+
+
+@dataclass
+class RewardConfig:
+    """Weights (paper Table III), each multiplied by the policy period (legged_gym convention).
+
+    Error forms follow legged_gym, whose defaults these weights are: squared errors for the
+    normalised terms, ``exp(-|err|^2 / sigma)`` for tracking. ``base_height_target`` m.
+    """
+
+    lift: float = 1.0             # b_lift in {-1, +1}: lifted foot in the air / touching
+    track_ang_vel: float = 2.0    # exp(-|w* - w|^2 / sigma)
+    track_sigma: float = 0.25
+    slip: float = -0.1            # sum over stance feet in contact of |v_foot_xy|
+    termination: float = -100.0   # base touches the ground (or the body falls)
+    collision: float = -1.0       # count of non-foot geoms touching the ground (> 1 N)
+    base_height: float = -10.0    # (h - h*)^2
+    base_height_target: float = 0.33
+    orientation: float = -1.0     # |g_xy|^2 (projected gravity)
+    lin_vel: float = -1.0         # |v_B|^2
+    joint_acc: float = -2.5e-7    # sum ddq^2
+    torques: float = -1e-5        # sum tau^2
+    action_rate: float = -0.01    # sum (a_t - a_{t-1})^2
+
+
+@dataclass
+class DRConfig:
+    """Domain randomisation; drawn per environment (masses once, the rest per episode)."""
+
+    enabled: bool = True
+    base_mass_add: tuple[float, float] = (-1.0, 2.0)        # kg added to the base
+    link_mass_scale: tuple[float, float] = (0.9, 1.1)       # other links' masses
+    base_com_offset: tuple[float, float, float] = (0.03, 0.02, 0.02)  # +- m (x, y, z)
+    friction: tuple[float, float] = (0.4, 1.25)             # floor and feet sliding friction
+    kp_scale: tuple[float, float] = (0.85, 1.15)
+    kd_scale: tuple[float, float] = (0.8, 1.2)
+    motor_strength: tuple[float, float] = (0.9, 1.1)        # scales the motor torque law
+    latency_steps: tuple[int, int] = (0, 4)                 # physics steps (x 5 ms): 0-20 ms
+    push_interval: tuple[float, float] = (4.0, 8.0)         # s between pushes
+    push_vel: float = 0.3                                   # m/s added to base vx, vy (+-)
+    init_joint_noise: float = 0.1                           # rad added to the start pose
+    noise_ang_vel: float = 0.2                              # rad/s, uniform +-
+    noise_gravity: float = 0.05
+    noise_joint_pos: float = 0.01                           # rad
+    noise_joint_vel: float = 1.5                            # rad/s
+
+
+@dataclass
+class EnvConfig:
+    """The tripod environment (paper section IV-C). Times s, gains N m/rad, N m s/rad."""
+
+    num_envs: int = 256
+    physics_dt: float = 0.005
+    decimation: int = 4
+    episode_s: float = 20.0
+    command_resample_s: float = 10.0
+    kp: float = 20.0
+    kd: float = 0.5
+    action_scale: float = 0.1
+    action_clip: float = 1.0
+    obs_clip: float = 100.0
+    soft_limit_margin: float = 0.05   # rad inside the URDF limits
+    p_no_lift: float = 0.15           # probability that a command lifts no leg
+    p_yaw_command: float = 0.5        # with no lift: probability of a yaw-rate command
+    yaw_command: float = 0.5          # rad/s, uniform +-
+    p_excite: float = 1.0             # probability that a lift plays an excitation (stage 2)
+    hold_range: tuple[float, float] = (2.0, 6.0)  # s of pure tripod hold when not exciting
+    # lifted leg: schedule (deploy.lift_schedule) and the pool of excitation plans
+    lift_kp: float = 40.0
+    lift_kd: float = 1.0
+    shift_s: float = 1.0
+    lift_s: float = 0.6
+    hold_s: float = 0.5
+    lower_s: float = 0.6
+    t_r_range: tuple[float, float] = (0.3, 0.65)
+    n_basis: int = 10
+    train_periods: int = 1            # periods per training plan (fits a 10 s command window)
+    plans_per_leg: int = 6
+    fall_tilt: float = 1.0            # rad; beyond: terminated
+    fall_height: float = 0.12         # m; base below: terminated
+    seed: int = 0
+    threads: int = 0                  # MuJoCo batch threads; 0 = all CPUs
+    model_file: str | None = None     # compiled .mjb (TrainModel.save) instead of the URDF
+    plan_pool_file: str | None = None  # precomputed PlanPool (.npz) instead of optimising
+    rewards: RewardConfig = field(default_factory=RewardConfig)
+    dr: DRConfig = field(default_factory=DRConfig)
+
+
+@dataclass
+class PPOConfig:
+    """rsl-rl PPO settings (its ``train_cfg`` is built from these)."""
+
+    num_steps_per_env: int = 24
+    actor_hidden: tuple[int, ...] = (256, 128, 64)
+    critic_hidden: tuple[int, ...] = (256, 128, 64)
+    init_std: float = 0.5
+    learning_rate: float = 1e-3
+    num_learning_epochs: int = 5
+    num_mini_batches: int = 4
+    clip_param: float = 0.2
+    gamma: float = 0.99
+    lam: float = 0.95
+    entropy_coef: float = 0.005
+    desired_kl: float = 0.01
+    max_grad_norm: float = 1.0
+    stage1_fraction: float = 0.25     # first fraction of iterations: tripod only (paper phase 1)
+    save_interval: int = 25
+
+
+@dataclass
+class TrainConfig:
+    env: EnvConfig = field(default_factory=EnvConfig)
+    ppo: PPOConfig = field(default_factory=PPOConfig)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrainConfig:
+        e = dict(d["env"])
+        rw = RewardConfig(**e.pop("rewards"))
+        dr = {k: tuple(v) if isinstance(v, list) else v for k, v in e.pop("dr").items()}
+        e = {k: tuple(v) if isinstance(v, list) else v for k, v in e.items()}
+        p = {k: tuple(v) if isinstance(v, list) else v for k, v in d["ppo"].items()}
+        return cls(EnvConfig(**e, rewards=rw, dr=DRConfig(**dr)), PPOConfig(**p))

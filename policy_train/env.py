@@ -1,0 +1,481 @@
+"""Vectorised tripod environment: N Go2s in ``mujoco.batch.Batch``, numpy over N for the rest.
+
+One policy step (50 Hz) = ``decimation`` physics steps (200 Hz) stepped in C on the batch's
+thread pool (all CPUs by default). Per policy step:
+
+1. actions (N, 12), **SDK order**, raw network outputs; ``target += scale * clip(a)``,
+   clamped to the soft limits (``docs/policy-format.md``, ``action.mode = delta_target``);
+2. for each physics substep, the motor controls: the policy targets (after the randomised
+   actuation latency, whole physics steps) and, for the lifted leg while
+   :mod:`deploy.lift_schedule` gives targets, the schedule's trajectory with its own gains;
+3. observations through :func:`deploy.observation.build_observation` (the on-board code), with
+   observation noise; privileged critic observations (true base velocity, height, contacts,
+   randomised parameters, schedule phase); rewards (:mod:`policy_train.rewards`); resets.
+
+Joint vectors inside are model order (FL, FR, RL, RR); conversion at the policy boundary
+through :mod:`calib.joints`.
+"""
+
+from __future__ import annotations
+
+import mujoco
+import numpy as np
+from mujoco.batch import Batch
+
+from calib.excitation import ExcitationConfig, plan_excitation
+from calib.joints import (
+    MODEL_LEGS,
+    default_crouch,
+    model_to_sdk,
+    position_limits,
+    sdk_to_model,
+)
+from deploy.lift_schedule import PHASES, blend_targets
+from deploy.observation import build_observation, default_terms, projected_gravity
+from policy_train.config import EnvConfig
+from policy_train.model import TrainModel
+from policy_train.rewards import compute_rewards
+
+__all__ = ["LIFT_VALUES", "PlanPool", "TripodEnv"]
+
+LIFT_VALUES = {"none": 0, "FL": 1, "FR": 2, "RL": 3, "RR": 4}
+"""Value of the ``lift_command`` observation per leg (paper: c_lift in {0, ..., 4})."""
+
+PRIV_SIZE = 3 + 1 + 4 + 4 + 6 + 1 + 8 + 3
+
+
+def _quat_rotate_inv(q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Rotate world vectors v (N, 3) into the frame of the unit quaternions q (N, 4) wxyz."""
+    w, x, y, z = q[:, 0:1], q[:, 1:2], q[:, 2:3], q[:, 3:4]
+    u = np.concatenate([x, y, z], 1)
+    a = v * (2.0 * w**2 - 1.0)
+    b = np.cross(u, v) * w * 2.0
+    c = u * (np.sum(u * v, 1, keepdims=True) * 2.0)
+    return a - b + c
+
+
+class PlanPool:
+    """Excitation plans of every leg tabulated at the physics rate (randomised t_r and seeds).
+
+    q[k], dq[k]: (T, 3) of plan k (padded with its end pose / zero); length[k] samples;
+    leg[k]: model leg index; duration[k] s.
+    """
+
+    def __init__(self, per_leg: int, t_r_range, n_basis: int, periods: int, dt: float,
+                 rng: np.random.Generator):
+        qs, dqs, self.leg, self.duration, self.t_r = [], [], [], [], []
+        for li, leg in enumerate(MODEL_LEGS):
+            for _ in range(per_leg):
+                t_r = float(rng.uniform(*t_r_range))
+                plan = plan_excitation(ExcitationConfig(
+                    leg=leg, t_r=t_r, n_basis=n_basis, periods=periods,
+                    seed=int(rng.integers(1 << 30))))
+                t = np.arange(int(np.ceil(plan.duration / dt)) + 1) * dt
+                qs.append(plan.positions(t))
+                dqs.append(plan.velocities(t))
+                self.leg.append(li)
+                self.duration.append(plan.duration)
+                self.t_r.append(t_r)
+        n = max(len(q) for q in qs)
+        self.length = np.array([len(q) for q in qs])
+        self.q = np.stack([np.concatenate([q, np.repeat(q[-1:], n - len(q), 0)]) for q in qs])
+        self.dq = np.stack([np.concatenate([d, np.zeros((n - len(d), 3))]) for d in dqs])
+        self.leg = np.array(self.leg)
+        self.duration = np.array(self.duration)
+        self.q0 = self.q[:, 0].copy()
+        self.dt = dt
+
+    @classmethod
+    def from_plans(cls, plans: list, dt: float) -> PlanPool:
+        """A pool of given :class:`calib.excitation.ExcitationPlan` objects (evaluation)."""
+        p = cls.__new__(cls)
+        qs, dqs = [], []
+        for plan in plans:
+            t = np.arange(int(np.ceil(plan.duration / dt)) + 1) * dt
+            qs.append(plan.positions(t))
+            dqs.append(plan.velocities(t))
+        n = max(len(q) for q in qs)
+        p.length = np.array([len(q) for q in qs])
+        p.q = np.stack([np.concatenate([q, np.repeat(q[-1:], n - len(q), 0)]) for q in qs])
+        p.dq = np.stack([np.concatenate([d, np.zeros((n - len(d), 3))]) for d in dqs])
+        p.leg = np.array([MODEL_LEGS.index(plan.leg) for plan in plans])
+        p.duration = np.array([plan.duration for plan in plans])
+        p.t_r = [plan.config.t_r for plan in plans]
+        p.q0 = p.q[:, 0].copy()
+        p.dt = dt
+        return p
+
+    def save(self, path) -> None:
+        np.savez(path, q=self.q, dq=self.dq, leg=self.leg, duration=self.duration,
+                 length=self.length, t_r=np.asarray(self.t_r), dt=self.dt)
+
+    @classmethod
+    def load(cls, path) -> PlanPool:
+        z = np.load(path)
+        p = cls.__new__(cls)
+        p.q, p.dq, p.leg, p.duration = z["q"], z["dq"], z["leg"], z["duration"]
+        p.length, p.t_r, p.dt = z["length"], list(z["t_r"]), float(z["dt"])
+        p.q0 = p.q[:, 0].copy()
+        return p
+
+    def of_leg(self, li: int) -> np.ndarray:
+        return np.flatnonzero(self.leg == li)
+
+    def sample(self, k: np.ndarray, te: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Plan k (N,) at te (N,) s from its start: (q (N, 3), dq (N, 3))."""
+        i = np.clip(np.rint(te / self.dt).astype(int), 0, self.length[k] - 1)
+        inside = (te >= 0) & (te <= self.duration[k])
+        return self.q[k, i], np.where(inside[:, None], self.dq[k, i], 0.0)
+
+
+class TripodEnv:
+    """The tripod calibration-action environment (rsl-rl ``VecEnv`` protocol in numpy;
+    :class:`policy_train.runner.TorchVecEnv` wraps it for torch)."""
+
+    def __init__(self, cfg: EnvConfig | None = None, plan_pool: PlanPool | None = None,
+                 train_model: TrainModel | None = None):
+        self.cfg = cfg = cfg if cfg is not None else EnvConfig()
+        if cfg.num_envs < 1:
+            raise ValueError("num_envs must be >= 1")
+        self.rng = np.random.default_rng(cfg.seed)
+        self.tm = train_model if train_model is not None else TrainModel(
+            cfg.physics_dt, cfg.kp, cfg.kd, model_file=cfg.model_file)
+        m = self.tm.model
+        self.N = N = cfg.num_envs
+        self.num_envs, self.num_actions, self.num_obs = N, 12, 49
+        self.dt = cfg.physics_dt * cfg.decimation
+        self.max_episode_length = round(cfg.episode_s / self.dt)
+        self.resample_steps = round(cfg.command_resample_s / self.dt)
+        self.batch = Batch(m, N, nthread=cfg.threads)
+        b = self.batch
+        self.qpos, self.qvel, self.ctrl = b.bind("qpos"), b.bind("qvel"), b.bind("ctrl")
+        self.sensordata, self.act_force = b.bind("sensordata"), b.bind("actuator_force")
+        self.gainprm, self.biasprm = b.expand("actuator_gainprm"), b.expand("actuator_biasprm")
+        self.default_pose = default_crouch("model")
+        lo = np.concatenate([position_limits(leg)[0] for leg in MODEL_LEGS]) + cfg.soft_limit_margin
+        hi = np.concatenate([position_limits(leg)[1] for leg in MODEL_LEGS]) - cfg.soft_limit_margin
+        self.soft_lo, self.soft_hi = lo, hi
+        self.obs_terms = default_terms(model_to_sdk(self.default_pose), "zero")
+        if plan_pool is None and cfg.plan_pool_file:
+            plan_pool = PlanPool.load(cfg.plan_pool_file)
+        self.pool = plan_pool if plan_pool is not None else PlanPool(
+            cfg.plans_per_leg, cfg.t_r_range, cfg.n_basis, cfg.train_periods, cfg.physics_dt,
+            np.random.default_rng(cfg.seed + 1))
+        # start height: feet on the floor at the default pose
+        d = mujoco.MjData(m)
+        d.qpos[3] = 1.0
+        d.qpos[7:19] = self.default_pose
+        mujoco.mj_kinematics(m, d)
+        foot_sites = [m.site(f"{leg}_foot").id for leg in MODEL_LEGS]
+        self.start_height = 0.022 - d.site_xpos[foot_sites, 2].min() + 0.005
+
+        self._masses_nominal = m.body_mass.copy()
+        self._ipos_nominal = m.body_ipos.copy()
+        self._fric = b.expand("geom_friction")
+        self._feet_geoms = np.array([m.geom(f"{leg}_foot").id for leg in MODEL_LEGS] + [m.geom("floor").id])
+        self._init_buffers()
+        self._randomize_masses()
+        self.reset_all()
+
+    def get_observations(self) -> dict[str, np.ndarray]:
+        return self.observations()
+
+    # ------------------------------------------------------------------ buffers
+    def _init_buffers(self) -> None:
+        N = self.N
+        z = np.zeros
+        self.target = z((N, 12))
+        self.prev_target = z((N, 12))
+        self.actions = z((N, 12))          # raw, SDK order
+        self.prev_actions = z((N, 12))
+        self.last_qvel = z((N, 12))
+        self.commands = z((N, 3))
+        self.lift_leg = np.full(N, -1)     # model leg index, -1 none
+        self.lift_t = z(N)                 # s since the lift command
+        self.lift_q_start = z((N, 3))
+        self.lift_plan = np.zeros(N, dtype=int)
+        self.lift_excite = np.zeros(N, dtype=bool)
+        self.lift_latched = np.zeros(N, dtype=bool)
+        self.lift_dur = z((N, 5))
+        self.phase = np.zeros(N, dtype=int)
+        self.episode_length_buf = np.zeros(N, dtype=int)
+        self.push_timer = z(N)
+        self.kp_s, self.kd_s, self.strength = np.ones(N), np.ones(N), np.ones(N)
+        self.latency = np.zeros(N, dtype=int)
+        self.friction = np.ones(N)
+        self.mass_add = z(N)
+        self.foot_touch = np.zeros((N, 4), dtype=bool)
+        self.other_touch = np.zeros(N, dtype=bool)
+        self.base_touch = np.zeros(N, dtype=bool)
+        self.lift_q_des = np.full((N, 3), np.nan)
+        self.episode_sums: dict[str, np.ndarray] = {}
+        self.p_excite = self.cfg.p_excite
+
+    def _randomize_masses(self) -> None:
+        dr = self.cfg.dr
+        if not dr.enabled:
+            return
+        mass = self.batch.expand("body_mass")
+        ipos = self.batch.expand("body_ipos")
+        base = self.tm.base_body
+        N = self.N
+        scale = self.rng.uniform(*dr.link_mass_scale, size=(N, mass.shape[1]))
+        mass[:] = self._masses_nominal * scale
+        self.mass_add = self.rng.uniform(*dr.base_mass_add, size=N)
+        mass[:, base] = self._masses_nominal[base] + self.mass_add
+        off = np.asarray(dr.base_com_offset)
+        ipos[:, base] = self._ipos_nominal[base] + self.rng.uniform(-off, off, size=(N, 3))
+        self.batch.set_const()
+
+    # ------------------------------------------------------------------ reset
+    def reset_all(self) -> None:
+        self.reset_idx(np.arange(self.N))
+        self._compute_state()
+
+    def reset_idx(self, ids: np.ndarray) -> None:
+        if len(ids) == 0:
+            return
+        dr, n, rng = self.cfg.dr, len(ids), self.rng
+        self.batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
+        q = self.default_pose + (rng.uniform(-1, 1, (n, 12)) * dr.init_joint_noise
+                                 if dr.enabled else 0.0)
+        q = np.clip(q, self.soft_lo, self.soft_hi)
+        yaw = rng.uniform(-np.pi, np.pi, n)
+        qp = self.qpos
+        qp[ids, 0:2] = 0.0
+        qp[ids, 2] = self.start_height
+        qp[ids, 3] = np.cos(yaw / 2)
+        qp[ids, 4:6] = 0.0
+        qp[ids, 6] = np.sin(yaw / 2)
+        qp[ids, 7:19] = q
+        self.qvel[ids] = 0.0
+        self.ctrl[ids] = q
+        self.target[ids] = q
+        self.prev_target[ids] = q
+        self.actions[ids] = 0.0
+        self.prev_actions[ids] = 0.0
+        self.last_qvel[ids] = 0.0
+        self.episode_length_buf[ids] = 0
+        if dr.enabled:
+            self.kp_s[ids] = rng.uniform(*dr.kp_scale, n)
+            self.kd_s[ids] = rng.uniform(*dr.kd_scale, n)
+            self.strength[ids] = rng.uniform(*dr.motor_strength, n)
+            self.latency[ids] = rng.integers(dr.latency_steps[0], dr.latency_steps[1] + 1, n)
+            self.friction[ids] = rng.uniform(*dr.friction, n)
+            self.push_timer[ids] = rng.uniform(*dr.push_interval, n)
+        else:
+            self.kp_s[ids] = self.kd_s[ids] = self.strength[ids] = 1.0
+            self.latency[ids] = 0
+            self.friction[ids] = 0.8
+            self.push_timer[ids] = np.inf
+        self._fric[np.ix_(ids, self._feet_geoms, [0])] = self.friction[ids, None, None]
+        self._sample_commands(ids)
+        self.batch.forward(ids)
+        for v in self.episode_sums.values():
+            v[ids] = 0.0
+
+    def _sample_commands(self, ids: np.ndarray, legs: np.ndarray | None = None) -> None:
+        """New lift / angular-velocity command for ``ids`` (legs: forced leg indices)."""
+        cfg, rng, n = self.cfg, self.rng, len(ids)
+        if legs is None:
+            legs = rng.integers(0, 4, n)
+            legs[rng.random(n) < cfg.p_no_lift] = -1
+        # a leg already lifted must come down first: keep schedules running past the resample
+        self.lift_leg[ids] = legs
+        self.lift_t[ids] = 0.0
+        self.commands[ids] = 0.0
+        yaw = (legs < 0) & (rng.random(n) < cfg.p_yaw_command)
+        self.commands[ids[yaw], 2] = rng.uniform(-cfg.yaw_command, cfg.yaw_command, yaw.sum())
+        lifted = legs >= 0
+        li = ids[lifted]
+        if len(li):
+            plans = np.array([rng.choice(self.pool.of_leg(int(g))) for g in legs[lifted]])
+            self.lift_plan[li] = plans
+            exc = rng.random(len(li)) < self.p_excite
+            self.lift_excite[li] = exc
+            hold = rng.uniform(*cfg.hold_range, len(li))
+            d = np.empty((len(li), 5))
+            d[:, 0], d[:, 1], d[:, 2], d[:, 4] = cfg.shift_s, cfg.lift_s, cfg.hold_s, cfg.lower_s
+            d[:, 3] = np.where(exc, self.pool.duration[plans], hold)
+            self.lift_dur[li] = d
+            self.lift_q_start[li] = self.qpos[li[:, None], 7 + 3 * legs[lifted][:, None] + np.arange(3)]
+            self.lift_latched[li] = False
+        self.phase[ids] = np.where(lifted, 0, 5)
+
+    # ------------------------------------------------------------------ lifted leg
+    def _lift_targets(self, t: np.ndarray):
+        """(ids, joint idx (n, 3), q_des, dq_des, phase) of envs whose lifted leg is overridden."""
+        act = np.flatnonzero(self.lift_leg >= 0)
+        if len(act) == 0:
+            return act, None, None, None, np.zeros(0, int)
+        d = self.lift_dur[act]
+        # latch the leg's joints when the shift phase ends (deploy.lift_schedule's q_start)
+        latch = act[(t[act] >= d[:, 0]) & ~self.lift_latched[act]]
+        if len(latch):
+            jl = 7 + 3 * self.lift_leg[latch][:, None] + np.arange(3)
+            self.lift_q_start[latch] = self.qpos[latch[:, None], jl]
+            self.lift_latched[latch] = True
+        k = self.lift_plan[act]
+        te = t[act] - d[:, :3].sum(1)
+        q_exc, dq_exc = self.pool.sample(k, te)
+        q0 = self.pool.q0[k]
+        hold = ~self.lift_excite[act]
+        q_exc = np.where(hold[:, None], q0, q_exc)
+        dq_exc = np.where(hold[:, None], 0.0, dq_exc)
+        qd, dqd, ph = blend_targets(t[act], d, self.lift_q_start[act], q0, q_exc, dq_exc)
+        jidx = 3 * self.lift_leg[act][:, None] + np.arange(3)
+        return act, jidx, qd, dqd, ph
+
+    # ------------------------------------------------------------------ step
+    def step(self, actions_sdk: np.ndarray):
+        cfg = self.cfg
+        a = np.asarray(actions_sdk, dtype=float).reshape(self.N, 12)
+        self.prev_actions[:] = self.actions
+        self.actions[:] = a
+        a_m = sdk_to_model(np.clip(a, -cfg.action_clip, cfg.action_clip))
+        self.prev_target[:] = self.target
+        self.target[:] = np.clip(self.target + cfg.action_scale * a_m, self.soft_lo, self.soft_hi)
+        kp = (cfg.kp * self.kp_s * self.strength)[:, None].repeat(12, 1)
+        kd = (cfg.kd * self.kd_s * self.strength)[:, None].repeat(12, 1)
+        self.foot_touch[:] = False
+        self.other_touch[:] = False
+        self.base_touch[:] = False
+        lift_touch = np.zeros(self.N, dtype=bool)
+        self.lift_err = np.full((self.N, 3), np.nan)
+        sd = self.sensordata
+        tm = self.tm
+        last = None
+        for s in range(cfg.decimation):
+            ctrl = np.where((self.latency <= s)[:, None], self.target, self.prev_target)
+            kp_s, kd_s = kp.copy(), kd.copy()
+            t = self.lift_t + s * cfg.physics_dt
+            act, jidx, qd, dqd, ph = self._lift_targets(t)
+            if len(act):
+                self.phase[act] = ph
+                on = (ph >= 1) & (ph <= 4)
+                ai, ji = act[on], jidx[on]
+                if len(ai):
+                    st = self.strength[ai, None] * self.kp_s[ai, None]
+                    kl, dl = cfg.lift_kp * st, cfg.lift_kd * self.kd_s[ai, None] * self.strength[ai, None]
+                    kp_s[ai[:, None], ji] = kl
+                    kd_s[ai[:, None], ji] = dl
+                    ctrl[ai[:, None], ji] = qd[on] + (cfg.lift_kd / cfg.lift_kp) * dqd[on]
+                    if s == cfg.decimation - 1:
+                        last = (ai, ji, qd[on])
+                done = ph == 5
+                if np.any(done):  # schedule over: back to the policy, lift command cleared
+                    self.lift_leg[act[done]] = -1
+                    self.target[act[done][:, None], jidx[done]] = self.qpos[
+                        act[done][:, None], 7 + jidx[done]]
+            self.ctrl[:] = ctrl
+            self.gainprm[:, :, 0] = kp_s
+            self.biasprm[:, :, 1] = -kp_s
+            self.biasprm[:, :, 2] = -kd_s
+            self.batch.step(nstep=1)
+            fc = sd[:, tm.foot_contact] > 0
+            self.foot_touch |= fc
+            self.other_touch |= np.any(np.abs(sd[:, tm.other_contact + 1]) + np.abs(
+                sd[:, tm.other_contact + 3]) > 1.0, axis=1)
+            self.base_touch |= np.any(sd[:, tm.base_contact] > 0, axis=1)
+            ll = self.lift_leg
+            held = (ll >= 0) & ((self.phase == 2) | (self.phase == 3))
+            lift_touch |= held & fc[np.arange(self.N), np.maximum(ll, 0)]
+        # lifted-leg tracking error after the last substep, against the target it was given
+        self.lift_q_des[:] = np.nan
+        if last is not None:
+            ai, ji, qd_last = last
+            self.lift_err[ai] = self.qpos[ai[:, None], 7 + ji] - qd_last
+            self.lift_q_des[ai] = qd_last
+        self.lift_t += self.dt
+        self.lift_touch = lift_touch
+        self.episode_length_buf += 1
+        # pushes
+        if cfg.dr.enabled:
+            self.push_timer -= self.dt
+            p = np.flatnonzero(self.push_timer <= 0)
+            if len(p):
+                self.qvel[p, 0:2] += self.rng.uniform(-cfg.dr.push_vel, cfg.dr.push_vel, (len(p), 2))
+                self.push_timer[p] = self.rng.uniform(*cfg.dr.push_interval, len(p))
+        self._compute_state()
+        rew, terms, terminated = compute_rewards(self)
+        self.last_qvel[:] = self.qvel[:, 6:18]
+        for k, v in terms.items():
+            self.episode_sums.setdefault(k, np.zeros(self.N))
+            self.episode_sums[k] += v
+        time_out = self.episode_length_buf >= self.max_episode_length
+        dones = terminated | time_out
+        extras = {"time_outs": time_out.copy(), "terminated": terminated.copy()}
+        ids = np.flatnonzero(dones)
+        if len(ids):
+            extras["episode"] = {k: v[ids].copy() for k, v in self.episode_sums.items()}
+            extras["episode_length"] = self.episode_length_buf[ids].copy()
+            self.reset_idx(ids)
+            self._compute_state()
+        res = np.flatnonzero((self.episode_length_buf % self.resample_steps == 0)
+                             & (self.episode_length_buf > 0) & (self.lift_leg < 0))
+        if len(res):
+            self._sample_commands(res)
+        # a leg still lifted at the resample time finishes its schedule; it gets no new command
+        return self.observations(), rew, dones, extras
+
+    # ------------------------------------------------------------------ observations
+    def _compute_state(self) -> None:
+        qp, qv = self.qpos, self.qvel
+        self.quat = qp[:, 3:7]
+        self.base_pos = qp[:, 0:3]
+        self.lin_vel_b = _quat_rotate_inv(self.quat, qv[:, 0:3])
+        self.ang_vel_b = qv[:, 3:6].copy()
+        self.gravity_b = projected_gravity(self.quat)
+        self.q = qp[:, 7:19]
+        self.dq = qv[:, 6:18]
+
+    def lift_command_value(self) -> np.ndarray:
+        return np.where(self.lift_leg >= 0, self.lift_leg + 1, 0).astype(float)
+
+    def signals(self, noise: bool = True) -> dict[str, np.ndarray]:
+        """The robot signals deploy would see (SDK order), with observation noise if enabled."""
+        dr, rng, N = self.cfg.dr, self.rng, self.N
+        ang, grav = self.ang_vel_b, self.gravity_b
+        q, dq = self.q, self.dq
+        if noise and dr.enabled:
+            ang = ang + rng.uniform(-1, 1, (N, 3)) * dr.noise_ang_vel
+            grav = grav + rng.uniform(-1, 1, (N, 3)) * dr.noise_gravity
+            q = q + rng.uniform(-1, 1, (N, 12)) * dr.noise_joint_pos
+            dq = dq + rng.uniform(-1, 1, (N, 12)) * dr.noise_joint_vel
+        return {
+            "base_lin_vel": self.lin_vel_b,
+            "base_ang_vel": ang,
+            "projected_gravity": grav,
+            "joint_pos": model_to_sdk(q),
+            "joint_vel": model_to_sdk(dq),
+            "previous_actions": self.actions,
+            "commands": self.commands,
+            "lift_command": self.lift_command_value(),
+        }
+
+    def observations(self) -> dict[str, np.ndarray]:
+        """{"policy": (N, 49) float32, "critic": (N, 49 + PRIV_SIZE) float32}."""
+        pol = build_observation(self.obs_terms, self.signals(True), clip=self.cfg.obs_clip)
+        clean = build_observation(self.obs_terms, self.signals(False), clip=self.cfg.obs_clip)
+        cfg = self.cfg
+        tph = np.where(self.lift_leg >= 0, self.lift_t - np.concatenate(
+            [np.zeros((self.N, 1)), np.cumsum(self.lift_dur, 1)], 1)[
+                np.arange(self.N), np.minimum(self.phase, 5)], 0.0)
+        priv = np.concatenate([
+            2.0 * self.lin_vel_b,
+            (self.base_pos[:, 2:3] - cfg.rewards.base_height_target) * 10.0,
+            self.foot_touch.astype(float),
+            np.stack([self.friction, self.kp_s, self.strength, self.mass_add / 2.0], 1),
+            np.eye(6)[np.clip(self.phase, 0, 5)],
+            np.clip(tph, 0, 20)[:, None] * 0.2,
+            np.stack([self.latency / 4.0, self.kd_s, self.lift_excite.astype(float),
+                      self.other_touch.astype(float), self.base_touch.astype(float),
+                      np.minimum(self.push_timer, 10) / 10.0, self.lift_t / 20.0,
+                      self.lift_touch.astype(float) if hasattr(self, "lift_touch")
+                      else np.zeros(self.N)], 1),
+            np.nan_to_num(getattr(self, "lift_err", np.zeros((self.N, 3))), nan=0.0) * 5.0,
+        ], 1)
+        return {"policy": pol, "critic": np.concatenate([clean, priv.astype(np.float32)], 1)}
+
+    def phase_names(self) -> list[str]:
+        return [PHASES[p] for p in self.phase]

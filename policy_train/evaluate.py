@@ -1,0 +1,218 @@
+"""``a2i-train eval``: the exported policy (ONNX through onnxruntime, plus its JSON) under domain
+randomisation, per leg, each episode holding the tripod through one full calibration motion.
+
+Per episode: the lift command at t = 0, then the JSON's schedule (shift, lift, hold, the
+anti-noise excitation with the JSON's ``t_r`` / ``n_basis`` / ``periods``, lower) and 0.5 s
+after. Success: no fall, no contact of anything but the feet, the lifted foot never touching
+during hold and excitation. During the excitation (steady window for CN): base tilt RMS,
+base angular-rate RMS (norm), lifted-leg joint tracking RMSE (all three joints, last physics
+step of each policy step), and the condition number of the executed foot angular velocity
+(body gyro rotated into the foot frame plus the leg's relative rate, at 50 Hz).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from calib.atomic import write_text_atomic
+from calib.excitation import covariance_kappa, foot_omega
+from calib.joints import MODEL_LEGS
+from deploy.lift_schedule import LiftSchedule
+from policy_train.config import TrainConfig
+from policy_train.env import PlanPool, TripodEnv
+
+__all__ = ["TARGETS", "evaluate_policy", "foot_angular_velocity"]
+
+TARGETS = {"success": 0.99, "tilt_rms_deg": 3.0, "ang_rate_rms": 0.1, "track_rmse": 0.05,
+           "cn": 1.2}
+
+
+def foot_angular_velocity(q_leg: np.ndarray, dq_leg: np.ndarray, omega_base: np.ndarray):
+    """Foot (calf) frame angular velocity, rad/s, (N, 3): base rate rotated into the foot frame
+    (R = Rx(hip) Ry(thigh + calf)) plus the leg's relative rate (calib.excitation.foot_omega)."""
+    h, s = q_leg[:, 0], q_leg[:, 1] + q_leg[:, 2]
+    wx, wy, wz = omega_base.T
+    # R^T w with R = Rx(h) Ry(s)
+    y1 = np.cos(h) * wy + np.sin(h) * wz
+    z1 = -np.sin(h) * wy + np.cos(h) * wz
+    x2 = np.cos(s) * wx - np.sin(s) * z1
+    z2 = np.sin(s) * wx + np.cos(s) * z1
+    return np.stack([x2, y1, z2], 1) + foot_omega(q_leg, dq_leg)
+
+
+def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, write: bool = True,
+                    results_path="docs/results/policy.md", log=print) -> dict:
+    import onnxruntime as ort
+
+    onnx_path = Path(onnx_path)
+    meta = json.loads(onnx_path.with_suffix(".json").read_text())
+    legs = tuple(legs) if legs else MODEL_LEGS
+    if episodes < 1:
+        raise ValueError("episodes must be >= 1")
+    sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    cfg = TrainConfig.from_dict(meta["train_config"]).env
+    cfg.model_file = None
+    cfg.plan_pool_file = None
+    cfg.num_envs = episodes * len(legs)
+    cfg.seed = seed
+    cfg.command_resample_s = 1e6
+    cfg.episode_s = 1e6  # episodes end with the motion (below), not by time-out
+    cfg.action_scale = float(meta["action"]["scale"])
+    cfg.action_clip = float(meta["action"]["clip"])
+    sched = LiftSchedule.from_metadata(meta["lift_schedule"])
+    cfg.shift_s, cfg.lift_s, cfg.hold_s, cfg.lower_s = sched.shift, sched.lift, sched.hold, sched.lower
+    cfg.lift_kp, cfg.lift_kd = sched.kp, sched.kd
+    pool = PlanPool.from_plans([sched.plan(leg) for leg in MODEL_LEGS], cfg.physics_dt)
+    t0 = time.time()
+    env = TripodEnv(cfg, plan_pool=pool)
+    env.obs_terms = meta["observation"]["terms"]  # the JSON's terms, as on board
+    N = env.N
+    leg_of = np.repeat([MODEL_LEGS.index(leg) for leg in legs], episodes)
+    env.p_excite = 1.0
+    env._sample_commands(np.arange(N), legs=leg_of)
+    env.lift_plan[:] = leg_of  # pool index == model leg index
+    env.lift_dur[:, 3] = pool.duration[leg_of]
+    total = float(sched.total(legs[0]))
+    n_steps = int(np.ceil((total + 0.5) / env.dt))
+    alive = np.ones(N, dtype=bool)
+    touched_other = np.zeros(N, dtype=bool)
+    touched_lift = np.zeros(N, dtype=bool)
+    tilt2, rate2, err2, nexc = np.zeros(N), np.zeros(N), np.zeros(N), np.zeros(N)
+    omega_f = [[] for _ in range(N)]
+    ramp = sched.plan(legs[0]).config.ramp
+    obs = env.observations()["policy"]
+    name_in = sess.get_inputs()[0].name
+    for _ in range(n_steps):
+        act = sess.run(None, {name_in: obs.astype(np.float32)})[0]
+        ob, _, _, extras = env.step(act)
+        obs = ob["policy"]
+        term = extras["terminated"]
+        alive &= ~term
+        touched_other |= env.other_touch & alive
+        touched_lift |= env.lift_touch & alive
+        exc = alive & (env.phase == 3)
+        if exc.any():
+            tilt = np.arccos(np.clip(-env.gravity_b[:, 2], -1, 1))
+            tilt2[exc] += tilt[exc] ** 2
+            rate2[exc] += np.sum(env.ang_vel_b[exc] ** 2, 1)
+            err2[exc] += np.nanmean(env.lift_err[exc] ** 2, 1)
+            nexc[exc] += 1
+            te = env.lift_t - env.lift_dur[:, :3].sum(1)
+            steady = exc & (te >= ramp) & (te <= env.lift_dur[:, 3] - ramp)
+            ids = np.flatnonzero(steady)
+            if len(ids):
+                jl = 3 * leg_of[ids, None] + np.arange(3)
+                wf = foot_angular_velocity(env.q[ids[:, None], jl], env.dq[ids[:, None], jl],
+                                           env.ang_vel_b[ids])
+                for i, w in zip(ids, wf, strict=True):
+                    omega_f[i].append(w)
+    success = alive & ~touched_other & ~touched_lift
+    rows = {}
+    for leg in legs:
+        sel = leg_of == MODEL_LEGS.index(leg)
+        ok = sel & (nexc > 0)
+        cn = [covariance_kappa(np.array(omega_f[i])) for i in np.flatnonzero(ok & success)
+              if len(omega_f[i]) > 10]
+        rows[leg] = {
+            "episodes": int(sel.sum()),
+            "success": float(success[sel].mean()),
+            "falls": int((~alive[sel]).sum()),
+            "other_contact": int(touched_other[sel].sum()),
+            "lifted_foot_touch": int(touched_lift[sel].sum()),
+            "tilt_rms_deg": float(np.degrees(_rms(tilt2[ok], nexc[ok]))),
+            "ang_rate_rms": _rms(rate2[ok], nexc[ok]),
+            "track_rmse": _rms(err2[ok], nexc[ok]),
+            "cn_median": float(np.median(cn)) if cn else float("nan"),
+            "cn_p90": float(np.percentile(cn, 90)) if cn else float("nan"),
+        }
+    result = {"policy": onnx_path.name, "episodes_per_leg": episodes, "seed": seed,
+              "motion_s": total, "t_r": sched.t_r, "periods": sched.periods,
+              "wall_s": time.time() - t0, "legs": rows, "targets": TARGETS}
+    table = format_table(result)
+    log(table)
+    if write:
+        write_text_atomic(results_path, _report(result, meta, table))
+        meta["evaluation"] = result
+        write_text_atomic(onnx_path.with_suffix(".json"), json.dumps(meta, indent=1) + "\n")
+    return result
+
+
+def _rms(sum_sq: np.ndarray, count: np.ndarray) -> float:
+    n = float(count.sum())
+    return float(np.sqrt(sum_sq.sum() / n)) if n > 0 else float("nan")
+
+
+def _mark(ok: bool) -> str:
+    return "ok" if ok else "MISS"
+
+
+def format_table(r: dict) -> str:
+    t = TARGETS
+    lines = [("| leg | success | falls | other contact | lifted foot touch | tilt RMS (deg) "
+              "| ang. rate RMS (rad/s) | tracking RMSE (rad) | CN median (p90) |"),
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for leg, x in r["legs"].items():
+        lines.append(
+            f"| {leg} | {100 * x['success']:.0f} % {_mark(x['success'] >= t['success'])} "
+            f"| {x['falls']} | {x['other_contact']} | {x['lifted_foot_touch']} "
+            f"| {x['tilt_rms_deg']:.2f} {_mark(x['tilt_rms_deg'] <= t['tilt_rms_deg'])} "
+            f"| {x['ang_rate_rms']:.3f} {_mark(x['ang_rate_rms'] <= t['ang_rate_rms'])} "
+            f"| {x['track_rmse']:.3f} {_mark(x['track_rmse'] <= t['track_rmse'])} "
+            f"| {x['cn_median']:.3f} ({x['cn_p90']:.3f}) {_mark(x['cn_p90'] <= t['cn'])} |")
+    return "\n".join(lines)
+
+
+def _report(r: dict, meta: dict, table: str) -> str:
+    return f"""# Tripod policy evaluation
+
+Policy `{r['policy']}` (commit `{meta.get('commit')}`, seed {meta.get('seed')},
+{meta.get('iterations')} PPO iterations). Produced by
+`a2i-train eval policies/{r['policy']} --episodes {r['episodes_per_leg']}` (seed {r['seed']}):
+the ONNX through onnxruntime, the JSON's observation terms, action and lift schedule.
+
+Each episode: domain randomisation as in training (masses, centre of mass, friction, kp/kd,
+motor strength, 0-20 ms latency, pushes, observation noise), the lift command at t = 0 and one
+full calibration motion: shift, lift, hold, the anti-noise excitation (t_r = {r['t_r']} s,
+{r['periods']} periods), lower; {r['motion_s']:.1f} s in all. Success = no fall, no contact but
+the feet, the lifted foot never down during hold and excitation. Tilt, angular rate and
+tracking are RMS over the excitation of the episodes that reached it; CN over its steady
+window of the successful episodes.
+
+Targets: success >= 99 %, tilt RMS <= 3 deg, angular rate RMS <= 0.1 rad/s, tracking RMSE
+<= 0.05 rad, CN <= 1.2 (p90 compared).
+
+{table}
+
+Wall time {r['wall_s']:.0f} s.
+
+## Training curve
+
+Mean per-step reward of the rollouts, mean return and length of the episodes that ended in
+the iteration (20 s episodes; falls end them early). Stage 1 = tripod hold only, stage 2 = with
+the calibration motions (paper's two phases).
+
+| iteration | stage | step reward | episode return | episode length (s) |
+| --- | --- | --- | --- | --- |
+{_curve(meta)}
+"""
+
+
+def _curve(meta: dict) -> str:
+    rows = []
+    for h in meta.get("training_history", [])[::5]:
+        er, el = h.get("mean_episode_reward"), h.get("mean_episode_length_s")
+        rows.append(f"| {h['iteration']} | {h['stage']} | {h['mean_step_reward']:+.4f} | "
+                    f"{'-' if er is None else f'{er:+.1f}'} | {'-' if el is None else f'{el:.1f}'} |")
+    return "\n".join(rows)
+
+
+def rewrite_report(onnx_path, results_path="docs/results/policy.md") -> None:
+    """Re-render the results page from the evaluation stored in the policy JSON."""
+    onnx_path = Path(onnx_path)
+    meta = json.loads(onnx_path.with_suffix(".json").read_text())
+    r = meta["evaluation"]
+    write_text_atomic(results_path, _report(r, meta, format_table(r)))

@@ -1,0 +1,151 @@
+"""Export a training checkpoint to the deploy contract: ``<name>.onnx`` + ``<name>.json``.
+
+The ONNX holds the actor's mean only (no sampling), input ``obs`` float32 [batch, 49], output
+``actions`` float32 [batch, 12], dynamic batch, one file (no external data); it is checked with
+onnxruntime against torch on random inputs before anything is written. The JSON follows
+``docs/policy-format.md`` (schema_version 1). Both files are written atomically.
+"""
+
+from __future__ import annotations
+
+import datetime
+import io
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from calib.atomic import write_bytes_atomic, write_text_atomic
+from calib.joints import SDK_JOINT_NAMES
+from deploy.lift_schedule import LiftSchedule
+from deploy.observation import OBS_SIZE
+from policy_train.config import TrainConfig
+
+__all__ = ["build_metadata", "export_policy", "git_commit"]
+
+EVAL_T_R = 0.5       # s, the deploy schedule's excitation (calib defaults)
+EVAL_PERIODS = 4
+
+
+class _Actor(torch.nn.Module):
+    def __init__(self, mlp: torch.nn.Module):
+        super().__init__()
+        self.mlp = mlp
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.mlp(obs)
+
+
+def _actor_from_checkpoint(d: dict, cfg: TrainConfig) -> torch.nn.Module:
+    """Rebuild the actor MLP (mean) from the rsl-rl state dict."""
+    from rsl_rl.modules import MLP
+
+    sd = d["actor_state_dict"]
+    mlp = MLP(OBS_SIZE, 12, list(cfg.ppo.actor_hidden), "elu")
+    mlp.load_state_dict({k[len("mlp."):]: v for k, v in sd.items() if k.startswith("mlp.")})
+    if any(k.startswith("obs_normalizer.") for k in sd):
+        raise ValueError("actor observation normalisation is not supported by this exporter")
+    return _Actor(mlp).eval()
+
+
+def git_commit() -> str:
+    """``git rev-parse HEAD`` (+ ``-dirty``), or ``unknown`` outside a repository."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                              check=True, timeout=10).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain"], capture_output=True, text=True,
+                               check=True, timeout=10).stdout.strip()
+        return head + ("-dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+
+
+def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int) -> dict:
+    """The JSON object of ``docs/policy-format.md`` (``evaluation`` empty until eval runs)."""
+    import calib.joints as cj
+    from deploy.observation import default_terms
+    from policy_train.env import LIFT_VALUES
+    from policy_train.model import ARMATURE
+
+    e = cfg.env
+    default = cj.default_crouch("sdk")
+    lo = np.concatenate([cj.position_limits(leg)[0] for leg in cj.SDK_LEGS]) + e.soft_limit_margin
+    hi = np.concatenate([cj.position_limits(leg)[1] for leg in cj.SDK_LEGS]) - e.soft_limit_margin
+    sched = LiftSchedule(shift=e.shift_s, lift=e.lift_s, hold=e.hold_s, lower=e.lower_s,
+                         kp=e.lift_kp, kd=e.lift_kd, t_r=EVAL_T_R, n_basis=e.n_basis,
+                         periods=EVAL_PERIODS, seed=0)
+    fl = lambda a: [float(x) for x in np.asarray(a, dtype=float)]
+    return {
+        "schema_version": 1,
+        "name": name,
+        "onnx": f"{name}.onnx",
+        "created_utc": datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "commit": git_commit(),
+        "seed": int(seed),
+        "iterations": int(iterations),
+        "train_config": cfg.to_dict(),
+        "control_dt": e.physics_dt * e.decimation,
+        "physics_dt": e.physics_dt,
+        "decimation": e.decimation,
+        "joint_order": list(SDK_JOINT_NAMES),
+        "default_pose": fl(default),
+        "kp": [e.kp] * 12,
+        "kd": [e.kd] * 12,
+        "action": {"size": 12, "scale": e.action_scale, "clip": e.action_clip,
+                   "mode": "delta_target"},
+        "soft_limits": {"lower": fl(lo), "upper": fl(hi)},
+        "observation": {"size": OBS_SIZE, "clip": e.obs_clip,
+                        "terms": default_terms(default, "zero")},
+        "lift_command": {k: int(v) for k, v in LIFT_VALUES.items()},
+        "lift_schedule": sched.to_metadata(),
+        "lift_command_after_done": 0,
+        "training_model": {"integrator": "implicitfast", "armature": ARMATURE,
+                           "actuator": "position (kp, kv), forcerange = effort limits"},
+        "evaluation": {},
+    }
+
+
+def export_policy(checkpoint: str | Path, out_stem: str | Path) -> tuple[Path, Path]:
+    """Write ``<out_stem>.onnx`` and ``<out_stem>.json`` from a training checkpoint."""
+    import onnx
+    import onnxruntime as ort
+
+    d = torch.load(checkpoint, weights_only=False, map_location="cpu")
+    cfg = TrainConfig.from_dict(d["train_config"])
+    actor = _actor_from_checkpoint(d, cfg)
+    out_stem = Path(out_stem)
+    name = out_stem.name.removesuffix(".onnx")
+    onnx_path = out_stem.with_name(name + ".onnx")
+    json_path = out_stem.with_name(name + ".json")
+    onnx_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = onnx_path.with_name(f".{name}.export.onnx")
+    dummy = torch.zeros(2, OBS_SIZE)
+    torch.onnx.export(actor, (dummy,), str(tmp), input_names=["obs"], output_names=["actions"],
+                      dynamic_shapes={"obs": {0: torch.export.Dim("batch", min=1, max=65536)}},
+                      opset_version=18, external_data=False, dynamo=True)
+    model = onnx.load(str(tmp))
+    tmp.unlink()
+    onnx.checker.check_model(model)
+    buf = io.BytesIO()
+    onnx.save_model(model, buf)
+    data = buf.getvalue()
+    sess = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(0)
+    for n in (1, 7, 256):
+        x = rng.normal(0, 1, (n, OBS_SIZE)).astype(np.float32)
+        y = sess.run(["actions"], {"obs": x})[0]
+        with torch.no_grad():
+            ref = actor(torch.from_numpy(x)).numpy()
+        if y.shape != (n, 12) or not np.allclose(y, ref, atol=1e-4, rtol=1e-4):
+            raise RuntimeError(f"onnxruntime disagrees with torch (batch {n}): "
+                               f"max err {np.abs(y - ref).max():.2e}")
+    meta = build_metadata(name, cfg, int(d.get("seed", 0)), int(d["iter"]))
+    meta["training_history"] = [
+        {k: h[k] for k in ("iteration", "mean_step_reward", "mean_episode_reward",
+                           "mean_episode_length_s", "stage")}
+        for h in d.get("history", [])[::10]]
+    write_bytes_atomic(onnx_path, data)
+    write_text_atomic(json_path, json.dumps(meta, indent=1) + "\n")
+    return onnx_path, json_path

@@ -1,0 +1,113 @@
+"""Reward terms of the tripod policy (paper Table III), vectorised over environments.
+
+Each term is a function of plain arrays so that its sign can be checked on hand-made states;
+:func:`compute_rewards` gathers them from a :class:`policy_train.env.TripodEnv` and applies
+the weights of :class:`policy_train.config.RewardConfig` times the policy period (legged_gym
+convention, the source of the paper's weights). Why each form was chosen where the paper's
+table is ambiguous: ``docs/policy-training.md``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = [
+    "action_rate",
+    "base_height",
+    "collision",
+    "compute_rewards",
+    "joint_acc",
+    "lift_indicator",
+    "lin_vel",
+    "orientation",
+    "slip",
+    "torques",
+    "track_ang_vel",
+]
+
+
+def lift_indicator(active: np.ndarray, touching: np.ndarray) -> np.ndarray:
+    """b_lift: +1 where the lift is active and the lifted foot is in the air, -1 where it
+    touches, 0 where no lift is active."""
+    return np.where(active, np.where(touching, -1.0, 1.0), 0.0)
+
+
+def track_ang_vel(cmd: np.ndarray, ang_vel: np.ndarray, sigma: float) -> np.ndarray:
+    """exp(-|w* - w|^2 / sigma), w base frame rad/s, (N, 3) -> (N,), in (0, 1]."""
+    return np.exp(-np.sum((cmd - ang_vel) ** 2, -1) / sigma)
+
+
+def slip(foot_vel_xy: np.ndarray, stance_contact: np.ndarray) -> np.ndarray:
+    """Sum over stance feet in contact of their horizontal speed, m/s; (N, 4, 2), (N, 4)."""
+    return np.sum(np.linalg.norm(foot_vel_xy, axis=-1) * stance_contact, -1)
+
+
+def collision(other_forces: np.ndarray, threshold: float = 1.0) -> np.ndarray:
+    """Number of non-foot geoms pressing on the ground with more than ``threshold`` N; (N, G)."""
+    return np.sum(other_forces > threshold, -1).astype(float)
+
+
+def base_height(h: np.ndarray, target: float) -> np.ndarray:
+    """(h - h*)^2, m^2."""
+    return (h - target) ** 2
+
+
+def orientation(gravity_b: np.ndarray) -> np.ndarray:
+    """|g_xy|^2 of the projected gravity (0 when level)."""
+    return np.sum(gravity_b[:, :2] ** 2, -1)
+
+
+def lin_vel(v_b: np.ndarray) -> np.ndarray:
+    """|v_B|^2, (m/s)^2."""
+    return np.sum(v_b**2, -1)
+
+
+def joint_acc(dq: np.ndarray, last_dq: np.ndarray, dt: float) -> np.ndarray:
+    """sum ((dq - dq_prev) / dt)^2, (rad/s^2)^2."""
+    return np.sum(((dq - last_dq) / dt) ** 2, -1)
+
+
+def torques(tau: np.ndarray) -> np.ndarray:
+    """sum tau^2, (N m)^2."""
+    return np.sum(tau**2, -1)
+
+
+def action_rate(a: np.ndarray, a_prev: np.ndarray) -> np.ndarray:
+    """sum (a_t - a_{t-1})^2 of the raw actions."""
+    return np.sum((a - a_prev) ** 2, -1)
+
+
+def compute_rewards(env) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
+    """(reward (N,), weighted terms {name: (N,)}, terminated (N,)) for the env's current state."""
+    cfg, w = env.cfg, env.cfg.rewards
+    N, dt = env.N, env.dt
+    sd, tm = env.sensordata, env.tm
+    h = env.base_pos[:, 2]
+    tilt = np.arccos(np.clip(-env.gravity_b[:, 2], -1.0, 1.0))
+    terminated = env.base_touch | (tilt > cfg.fall_tilt) | (h < cfg.fall_height)
+
+    lifted = env.lift_leg
+    active = (lifted >= 0) & ((env.phase == 2) | (env.phase == 3))
+    stance = np.ones((N, 4), dtype=bool)
+    has = lifted >= 0
+    stance[np.flatnonzero(has), lifted[has]] = False
+    foot_vel = sd[:, tm.foot_vel[:, None] + np.arange(2)]
+    contact_now = sd[:, tm.foot_contact] > 0
+    other_f = np.linalg.norm(sd[:, tm.other_contact[:, None] + 1 + np.arange(3)], axis=-1)
+
+    raw = {
+        "lift": lift_indicator(active, env.lift_touch),
+        "track_ang_vel": track_ang_vel(env.commands, env.ang_vel_b, w.track_sigma),
+        "slip": slip(foot_vel, stance & contact_now),
+        "termination": terminated.astype(float),
+        "collision": collision(other_f),
+        "base_height": base_height(h, w.base_height_target),
+        "orientation": orientation(env.gravity_b),
+        "lin_vel": lin_vel(env.lin_vel_b),
+        "joint_acc": joint_acc(env.dq, env.last_qvel, dt),
+        "torques": torques(env.act_force),
+        "action_rate": action_rate(env.actions, env.prev_actions),
+    }
+    terms = {k: v * getattr(w, k) * dt for k, v in raw.items()}
+    rew = np.sum(np.stack(list(terms.values())), 0)
+    return rew, terms, terminated

@@ -1,0 +1,190 @@
+"""PPO training of the tripod policy with rsl-rl (its ``PPO`` and ``MLPModel``; our own loop).
+
+The loop is rsl-rl's ``OnPolicyRunner.learn`` reduced to what we need, so that we control the
+progress line, the checkpoints (``runs/<name>/model_<it>.pt``; ``runs/`` is gitignored), resume,
+and the two training phases of the paper (tripod stance first, then calibration motions:
+``EnvConfig.p_excite`` is 0 for the first ``PPOConfig.stage1_fraction`` of the iterations).
+
+The actor sees the 49-dim observation (``base_lin_vel`` zero-filled); the critic additionally
+sees privileged simulator state (true base velocity, height, contacts, randomised parameters,
+schedule phase): asymmetric actor-critic.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from rsl_rl.algorithms import PPO
+from rsl_rl.env import VecEnv
+from tensordict import TensorDict
+
+from policy_train.config import TrainConfig
+from policy_train.env import TripodEnv
+
+__all__ = ["TorchVecEnv", "Trainer", "rsl_train_cfg"]
+
+
+class TorchVecEnv(VecEnv):
+    """rsl-rl ``VecEnv`` over a numpy :class:`TripodEnv` (CPU tensors)."""
+
+    def __init__(self, env: TripodEnv):
+        self.env = env
+        self.num_envs = env.N
+        self.num_actions = 12
+        self.max_episode_length = env.max_episode_length
+        self.device = "cpu"
+        self.cfg = {}
+
+    @property
+    def episode_length_buf(self) -> torch.Tensor:
+        return torch.from_numpy(self.env.episode_length_buf)
+
+    @episode_length_buf.setter
+    def episode_length_buf(self, v) -> None:
+        self.env.episode_length_buf[:] = np.asarray(v)
+
+    def _td(self, obs: dict) -> TensorDict:
+        return TensorDict({k: torch.from_numpy(v) for k, v in obs.items()}, batch_size=[self.num_envs])
+
+    def get_observations(self) -> TensorDict:
+        return self._td(self.env.observations())
+
+    def step(self, actions: torch.Tensor):
+        obs, rew, dones, extras = self.env.step(actions.detach().cpu().numpy())
+        ex = {"time_outs": torch.from_numpy(extras["time_outs"])}
+        self.last_extras = extras
+        return (self._td(obs), torch.from_numpy(rew.astype(np.float32)),
+                torch.from_numpy(dones.astype(np.int64)), ex)
+
+
+def rsl_train_cfg(cfg: TrainConfig) -> dict:
+    p = cfg.ppo
+    return {
+        "num_steps_per_env": p.num_steps_per_env,
+        "save_interval": p.save_interval,
+        "obs_groups": {"actor": ["policy"], "critic": ["critic"]},
+        "algorithm": {
+            "class_name": "PPO", "num_learning_epochs": p.num_learning_epochs,
+            "num_mini_batches": p.num_mini_batches, "clip_param": p.clip_param,
+            "gamma": p.gamma, "lam": p.lam, "value_loss_coef": 1.0,
+            "entropy_coef": p.entropy_coef, "learning_rate": p.learning_rate,
+            "max_grad_norm": p.max_grad_norm, "use_clipped_value_loss": True,
+            "schedule": "adaptive", "desired_kl": p.desired_kl,
+        },
+        "actor": {
+            "class_name": "MLPModel", "hidden_dims": list(p.actor_hidden), "activation": "elu",
+            "obs_normalization": False,
+            "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": p.init_std},
+        },
+        "critic": {
+            "class_name": "MLPModel", "hidden_dims": list(p.critic_hidden), "activation": "elu",
+            "obs_normalization": True,
+        },
+        "multi_gpu": None,
+    }
+
+
+class Trainer:
+    """Builds env + PPO; ``learn(iterations)`` with a progress line per iteration."""
+
+    def __init__(self, cfg: TrainConfig, run_dir: str | Path, seed: int = 0, log=print):
+        self.cfg = cfg
+        cfg.env.seed = seed
+        torch.manual_seed(seed)
+        np.random.seed(seed)
+        torch.set_num_threads(max(1, os.cpu_count() or 1))
+        self.run_dir = Path(run_dir)
+        self.log = log
+        self.env = TripodEnv(cfg.env)
+        self.venv = TorchVecEnv(self.env)
+        self.train_cfg = rsl_train_cfg(cfg)
+        obs = self.venv.get_observations()
+        self.alg = PPO.construct_algorithm(obs, self.venv, self.train_cfg, "cpu")
+        self.iteration = 0
+        self.seed = seed
+        self.history: list[dict] = []
+        self.total_iterations = 0
+
+    def save(self, path: Path) -> None:
+        d = self.alg.save()
+        d["iter"] = self.iteration
+        d["train_config"] = self.cfg.to_dict()
+        d["seed"] = self.seed
+        d["history"] = self.history
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        torch.save(d, tmp)
+        os.replace(tmp, path)
+
+    def load(self, path: str | Path) -> None:
+        d = torch.load(path, weights_only=False, map_location="cpu")
+        self.alg.load(d, None, True)
+        self.iteration = int(d["iter"])
+        self.history = list(d.get("history", []))
+
+    def learn(self, iterations: int, max_seconds: float | None = None) -> None:
+        ppo = self.cfg.ppo
+        start = self.iteration
+        if self.total_iterations <= start:  # not planned by the caller: this call's end
+            self.total_iterations = start + iterations
+        stage1_end = int(ppo.stage1_fraction * self.total_iterations)
+        obs = self.venv.get_observations()
+        self.alg.train_mode()
+        ep_rew = np.zeros(self.env.N)
+        t_start = time.time()
+        for it in range(start, start + iterations):
+            if max_seconds is not None and time.time() - t_start > max_seconds:
+                self.log(f"time limit reached after {self.iteration - start} iterations")
+                break
+            self.env.p_excite = 0.0 if it < stage1_end else self.cfg.env.p_excite
+            t0 = time.time()
+            finished_r, finished_len, falls = [], [], 0
+            with torch.inference_mode():
+                for _ in range(ppo.num_steps_per_env):
+                    actions = self.alg.act(obs)
+                    obs, rew, dones, extras = self.venv.step(actions)
+                    self.alg.process_env_step(obs, rew, dones, extras)
+                    ep_rew += rew.numpy()
+                    ex = self.venv.last_extras
+                    d = dones.numpy().astype(bool)
+                    if d.any():
+                        finished_r.extend(ep_rew[d].tolist())
+                        finished_len.extend(ex["episode_length"].tolist())
+                        falls += int(ex["terminated"].sum())
+                        ep_rew[d] = 0.0
+                self.alg.compute_returns(obs)
+            t1 = time.time()
+            losses = self.alg.update()
+            t2 = time.time()
+            self.iteration = it + 1
+            steps = ppo.num_steps_per_env * self.env.N
+            rec = {
+                "iteration": self.iteration,
+                "mean_step_reward": float(self.alg.storage.rewards.mean()),
+                "mean_episode_reward": float(np.mean(finished_r)) if finished_r else None,
+                "mean_episode_length_s": (float(np.mean(finished_len)) * self.env.dt
+                                          if finished_len else None),
+                "falls": falls, "episodes": len(finished_r),
+                "steps_per_s": steps / (t1 - t0), "collect_s": t1 - t0, "learn_s": t2 - t1,
+                "value_loss": float(losses.get("value", losses.get("value_function", 0.0))),
+                "std": float(self.alg.get_policy().output_std.detach().mean()),
+                "stage": 1 if it < stage1_end else 2,
+            }
+            self.history.append(rec)
+            er = rec["mean_episode_reward"]
+            el = rec["mean_episode_length_s"]
+            self.log(
+                f"it {self.iteration:5d}  stage {rec['stage']}  step_rew {rec['mean_step_reward']:+.4f}"
+                f"  ep_rew {'   -   ' if er is None else f'{er:+8.2f}'}"
+                f"  ep_len {'  -  ' if el is None else f'{el:5.1f}'} s  falls {falls:4d}/"
+                f"{len(finished_r):<4d}  std {rec['std']:.3f}  {rec['steps_per_s']:7.0f} steps/s"
+                f"  ({rec['collect_s']:.1f}+{rec['learn_s']:.1f} s)", )
+            if self.iteration % ppo.save_interval == 0:
+                self.save(self.run_dir / f"model_{self.iteration}.pt")
+        self.save(self.run_dir / f"model_{self.iteration}.pt")
+        (self.run_dir / "history.json").write_text(json.dumps(self.history, indent=1))

@@ -1,0 +1,75 @@
+"""deploy.lift_schedule: phase order, continuity of the targets, velocities consistent with the
+positions, metadata round trip, and the batched core equal to the per-robot call."""
+
+import numpy as np
+import pytest
+
+from deploy.lift_schedule import PHASES, LiftSchedule, blend_targets
+
+
+@pytest.fixture(scope="module")
+def sched():
+    return LiftSchedule(t_r=0.3, periods=1, n_basis=6)
+
+
+Q_START = np.array([0.1, 0.85, -1.55])
+
+
+def test_phases_in_order(sched):
+    d = sched.durations("FL")
+    ends = np.cumsum(d)
+    assert sched.phase("FL", 0.0) == "shift"
+    for name, t in zip(PHASES[1:], ends, strict=True):
+        assert sched.phase("FL", t + 1e-6) == name
+    assert sched.targets("FL", 0.2, Q_START).q_des is None
+    assert sched.targets("FL", ends[-1] + 0.1, Q_START).phase == "done"
+    assert sched.targets("FL", ends[-1] + 0.1, Q_START).q_des is None
+
+
+def test_targets_continuous_and_consistent(sched):
+    plan = sched.plan("RR")
+    ends = np.cumsum(sched.durations("RR"))
+    eps = 1e-7
+    at = lambda t: sched.targets("RR", t, Q_START)
+    np.testing.assert_allclose(at(ends[0] + eps).q_des, Q_START, atol=1e-6)
+    np.testing.assert_allclose(at(ends[1] - eps).q_des, plan.q0, atol=1e-6)
+    np.testing.assert_allclose(at(ends[2] + eps).q_des, plan.q0, atol=1e-5)
+    np.testing.assert_allclose(at(ends[3] - eps).q_des, plan.q0, atol=1e-5)
+    np.testing.assert_allclose(at(ends[4] - eps).q_des, Q_START, atol=1e-6)
+    # dq_des is the derivative of q_des in every phase with targets
+    for t in np.linspace(ends[0] + 0.01, ends[4] - 0.01, 37):
+        h = 1e-5
+        fd = (at(t + h).q_des - at(t - h).q_des) / (2 * h)
+        np.testing.assert_allclose(at(t).dq_des, fd, atol=2e-3)
+    tg = at(ends[2] + 1.0)
+    assert tg.phase == "excite" and tg.kp == sched.kp and tg.kd == sched.kd
+
+
+def test_metadata_round_trip_and_errors(sched):
+    d = sched.to_metadata()
+    assert LiftSchedule.from_metadata(d) == sched
+    with pytest.raises(ValueError, match="unknown lift_schedule keys"):
+        LiftSchedule.from_metadata({**d, "bogus": 1})
+    with pytest.raises(ValueError):
+        LiftSchedule(shift=0.0)
+    with pytest.raises(ValueError):
+        sched.targets("FL", -1.0, Q_START)
+    with pytest.raises(ValueError):
+        sched.targets("XX", 1.0, Q_START)
+
+
+def test_batched_core_matches(sched):
+    plan = sched.plan("FL")
+    d = sched.durations("FL")
+    t = np.linspace(0, d.sum() + 1, 50)
+    te = t - d[:3].sum()
+    q, dq, ph = blend_targets(t, d, np.tile(Q_START, (50, 1)), np.tile(plan.q0, (50, 1)),
+                              plan.positions(te), plan.velocities(te))
+    for i in range(0, 50, 7):
+        tg = sched.targets("FL", t[i], Q_START)
+        assert PHASES[ph[i]] == tg.phase
+        if tg.q_des is None:
+            assert np.isnan(q[i]).all()
+        else:
+            np.testing.assert_allclose(q[i], tg.q_des)
+            np.testing.assert_allclose(dq[i], tg.dq_des)

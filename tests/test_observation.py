@@ -1,0 +1,93 @@
+"""deploy.observation: the 49-dim layout, scaling/offsets/clip, batching, and that the training
+env builds exactly what the on-board builder builds from the same signals."""
+
+import numpy as np
+import pytest
+
+from calib.joints import default_crouch
+from deploy.observation import (
+    OBS_SIZE,
+    TERM_NAMES,
+    TERM_SIZES,
+    build_observation,
+    check_terms,
+    default_terms,
+    projected_gravity,
+)
+
+
+@pytest.fixture(scope="module")
+def tiny_env():
+    from policy_train.config import EnvConfig
+    from policy_train.env import TripodEnv
+
+    return TripodEnv(EnvConfig(num_envs=4, plans_per_leg=1, seed=3, threads=1))
+
+
+def _signals(shape=(), seed=0):
+    rng = np.random.default_rng(seed)
+    return {n: rng.normal(size=shape + (TERM_SIZES[n],)) for n in TERM_NAMES}
+
+
+def test_layout_is_the_papers_49():
+    terms = default_terms(default_crouch("sdk"))
+    assert [t["name"] for t in terms] == list(TERM_NAMES)
+    assert [t["size"] for t in terms] == [3, 3, 3, 12, 12, 12, 3, 1]
+    assert OBS_SIZE == 49
+
+
+def test_values_scaled_offset_and_zero_source():
+    dp = default_crouch("sdk")
+    terms = default_terms(dp, "zero")
+    sig = _signals()
+    obs = build_observation(terms, sig)
+    assert obs.dtype == np.float32 and obs.shape == (49,)
+    np.testing.assert_array_equal(obs[0:3], 0.0)  # base_lin_vel zero-filled
+    np.testing.assert_allclose(obs[3:6], 0.25 * sig["base_ang_vel"], rtol=1e-6)
+    np.testing.assert_allclose(obs[9:21], sig["joint_pos"] - dp, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(obs[21:33], 0.05 * sig["joint_vel"], rtol=1e-5)
+    np.testing.assert_allclose(obs[48], 0.25 * sig["lift_command"][0], rtol=1e-6)
+    del sig["base_lin_vel"]  # a zero term needs no signal
+    build_observation(terms, sig)
+    measured = default_terms(dp, "leg_odometry")
+    with pytest.raises(ValueError, match="base_lin_vel"):
+        build_observation(measured, sig)
+
+
+def test_batched_and_clip_and_metadata_object():
+    terms = default_terms(np.zeros(12))
+    sig = _signals((4, 5))
+    sig["lift_command"] = np.full((4, 5), 3.0)  # scalar per env broadcasts to size 1
+    obs = build_observation({"size": 49, "clip": 0.5, "terms": terms}, sig)
+    assert obs.shape == (4, 5, 49)
+    assert np.abs(obs).max() <= 0.5
+    one = build_observation(terms, {k: v[2, 3] for k, v in sig.items()}, clip=0.5)
+    np.testing.assert_allclose(obs[2, 3], one)
+
+
+def test_bad_terms_raise():
+    with pytest.raises(ValueError, match="unknown observation term"):
+        check_terms([{"name": "foo", "size": 3}])
+    with pytest.raises(ValueError, match="size"):
+        check_terms([{"name": "joint_pos", "size": 3}])
+    with pytest.raises(ValueError, match="end in size"):
+        build_observation(default_terms(np.zeros(12)), {**_signals(), "joint_vel": np.zeros(11)})
+
+
+def test_projected_gravity():
+    np.testing.assert_allclose(projected_gravity([1, 0, 0, 0]), [0, 0, -1], atol=1e-12)
+    a = 0.3  # pitch nose-down by a about y: gravity leans towards +x in the base frame
+    g = projected_gravity([np.cos(a / 2), 0, np.sin(a / 2), 0])
+    np.testing.assert_allclose(g, [np.sin(a), 0, -np.cos(a)], atol=1e-12)
+    q = np.random.default_rng(1).normal(size=(6, 4))
+    np.testing.assert_allclose(np.linalg.norm(projected_gravity(q), axis=1), 1.0)
+
+
+def test_env_observation_equals_builder(tiny_env):
+    env = tiny_env
+    env.step(np.random.default_rng(0).normal(0, 0.3, (env.N, 12)))
+    obs = env.observations()["critic"][:, :49]  # noise-free actor part of the critic input
+    ref = build_observation(env.obs_terms, env.signals(noise=False), clip=env.cfg.obs_clip)
+    np.testing.assert_array_equal(obs, ref)
+    noisy = env.observations()["policy"]
+    assert noisy.shape == (env.N, 49) and not np.array_equal(noisy, ref)

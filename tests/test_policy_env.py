@@ -1,0 +1,113 @@
+"""policy_train env: shapes, action/joint order, the lifted-leg override, domain randomisation,
+terminations, and the signs of the reward terms on hand-made states."""
+
+import numpy as np
+import pytest
+
+from calib.joints import model_to_sdk
+from policy_train import rewards as R
+from policy_train.config import EnvConfig
+from policy_train.env import TripodEnv
+
+
+@pytest.fixture(scope="module")
+def env():
+    return TripodEnv(EnvConfig(num_envs=6, plans_per_leg=1, seed=1, threads=1))
+
+
+def test_reset_step_shapes(env):
+    obs = env.observations()
+    assert obs["policy"].shape == (6, 49) and obs["policy"].dtype == np.float32
+    assert obs["critic"].shape[0] == 6 and obs["critic"].shape[1] > 49
+    _, r, d, ex = env.step(np.zeros((6, 12)))
+    assert r.shape == (6,) and d.shape == (6,) and np.isfinite(r).all()
+    assert ex["time_outs"].shape == (6,)
+    assert env.max_episode_length == 1000  # 20 s at 50 Hz
+
+
+def test_action_is_delta_target_in_sdk_order():
+    e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=2, threads=1))
+    before = e.target.copy()
+    a = np.zeros((2, 12))
+    a[:, 0] = 1.0  # SDK index 0 = FR_hip = model index 3
+    a[:, 3] = 5.0  # FL_hip (model 0), clipped to action_clip
+    e.lift_leg[:] = -1  # no override in this step
+    e.step(a)
+    d = e.target - before
+    np.testing.assert_allclose(d[:, 3], e.cfg.action_scale)
+    np.testing.assert_allclose(d[:, 0], e.cfg.action_scale * e.cfg.action_clip)
+    assert np.allclose(np.delete(d, [0, 3], axis=1), 0.0)
+    np.testing.assert_array_equal(e.observations()["critic"][:, 33:45], e.actions)
+
+
+def test_lifted_leg_follows_schedule():
+    e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=4, threads=1))
+    e.p_excite = 1.0
+    e._sample_commands(np.arange(2), legs=np.array([0, 3]))
+    n = int((e.cfg.shift_s + e.cfg.lift_s + e.cfg.hold_s) / e.dt) + 10
+    for _ in range(n):
+        e.step(np.zeros((2, 12)))
+    assert (e.phase == 3).all()
+    assert np.all(np.abs(e.lift_err) < 0.3)  # zero actions: the body sags, the leg still tracks
+    # the target is the excitation plan at the time of the last physics substep
+    te = e.lift_t - e.dt + (e.cfg.decimation - 1) * e.cfg.physics_dt - e.lift_dur[:, :3].sum(1)
+    q_plan, _ = e.pool.sample(e.lift_plan, te)
+    np.testing.assert_allclose(e.lift_q_des, q_plan, atol=1e-9)
+    j = np.array([[0, 1, 2], [9, 10, 11]])
+    np.testing.assert_allclose(e.q[np.arange(2)[:, None], j] - e.lift_q_des, e.lift_err, atol=1e-9)
+    obs = e.observations()["policy"]
+    np.testing.assert_allclose(obs[:, 48], 0.25 * np.array([1, 4]))
+
+
+def test_domain_randomisation_applied(env):
+    assert np.ptp(env.kp_s) > 0 and np.ptp(env.friction) > 0 and np.ptp(env.strength) > 0
+    lo, hi = env.cfg.dr.friction
+    assert np.all((env.friction >= lo) & (env.friction <= hi))
+    fr = env.batch.expanded("geom_friction")[:, env._feet_geoms[0], 0]
+    np.testing.assert_allclose(fr, env.friction)
+    mass = env.batch.expanded("body_mass")[:, env.tm.base_body]
+    assert np.ptp(mass) > 0.1
+    assert set(np.unique(env.latency)) <= set(range(5))
+    gain = env.batch.expanded("actuator_gainprm")[:, 0, 0]
+    assert np.ptp(gain) > 0
+    off = TripodEnv(EnvConfig(num_envs=3, plans_per_leg=1, seed=1, threads=1,
+                              dr=EnvConfig().dr.__class__(enabled=False)))
+    assert np.all(off.kp_s == 1.0) and np.all(off.latency == 0)
+    s1, s2 = off.signals(noise=True), off.signals(noise=False)
+    np.testing.assert_array_equal(s1["joint_pos"], s2["joint_pos"])
+    assert not np.array_equal(env.signals(True)["joint_pos"], env.signals(False)["joint_pos"])
+    np.testing.assert_array_equal(env.signals(False)["joint_pos"], model_to_sdk(env.q))
+
+
+def test_fall_terminates():
+    e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=5, threads=1))
+    e.qpos[0, 2] = 0.08  # base dropped to the floor
+    e.qpos[0, 3:7] = [np.cos(0.9), np.sin(0.9), 0, 0]  # rolled ~100 deg
+    e.batch.forward()
+    _, r, d, ex = e.step(np.zeros((2, 12)))
+    assert d[0] and ex["terminated"][0]
+    assert r[0] < r[1]
+
+
+def test_reward_term_signs():
+    assert list(R.lift_indicator(np.array([True, True, False]), np.array([False, True, False]))) == [1, -1, 0]
+    w0 = np.zeros((2, 3))
+    tr = R.track_ang_vel(w0, np.array([[0, 0, 0], [0, 0, 1.0]]), 0.25)
+    assert tr[0] == 1.0 and 0 < tr[1] < tr[0]
+    v = np.zeros((1, 4, 2))
+    v[0, 1] = [0.3, 0.4]
+    assert R.slip(v, np.array([[True, True, True, False]])) == pytest.approx(0.5)
+    assert R.slip(v, np.array([[True, False, True, True]])) == 0.0
+    assert R.collision(np.array([[0.5, 2.0, 3.0]])) == 2.0
+    assert R.base_height(np.array([0.33, 0.25]), 0.33)[1] > 0 == R.base_height(np.array([0.33]), 0.33)[0]
+    assert R.orientation(np.array([[0, 0, -1.0], [0.2, 0, -0.98]]))[1] > 0
+    assert R.lin_vel(np.array([[0.1, 0, 0]])) > 0
+    assert R.joint_acc(np.ones((1, 12)), np.zeros((1, 12)), 0.02) > 0
+    assert R.torques(np.ones((1, 12))) == 12
+    assert R.action_rate(np.ones((1, 12)), np.zeros((1, 12))) == 12
+    w = EnvConfig().rewards
+    # task terms reward, regularisers penalise
+    assert w.lift > 0 and w.track_ang_vel > 0
+    for k in ("slip", "termination", "collision", "base_height", "orientation", "lin_vel",
+              "joint_acc", "torques", "action_rate"):
+        assert getattr(w, k) < 0, k

@@ -1,0 +1,75 @@
+"""`a2i-train tripod --iterations 2` trains, checkpoints and exports a loadable ONNX + JSON
+(tiny env); `a2i-train eval` runs it through onnxruntime."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+
+from deploy.lift_schedule import LiftSchedule
+from deploy.observation import build_observation
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    d = tmp_path_factory.mktemp("tripod")
+    cmd = [sys.executable, "-m", "policy_train.cli", "tripod", "--iterations", "2",
+           "--num-envs", "8", "--plans-per-leg", "1", "--steps-per-env", "8",
+           "--save-interval", "1", "--run-dir", str(d / "run"), "--export", str(d / "pol")]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "it     1" in p.stdout and "it     2" in p.stdout
+    return d, p.stdout
+
+
+def test_checkpoints_and_progress(exported):
+    d, out = exported
+    assert (d / "run" / "model_1.pt").exists() and (d / "run" / "model_2.pt").exists()
+    assert "steps/s" in out
+
+
+def test_onnx_single_file_dynamic_batch(exported):
+    d, _ = exported
+    m = onnx.load(str(d / "pol.onnx"))
+    assert not any(t.data_location == onnx.TensorProto.EXTERNAL for t in m.graph.initializer)
+    assert [i.name for i in m.graph.input] == ["obs"] and [o.name for o in m.graph.output] == ["actions"]
+    s = ort.InferenceSession(str(d / "pol.onnx"), providers=["CPUExecutionProvider"])
+    for n in (1, 5):
+        y = s.run(None, {"obs": np.zeros((n, 49), np.float32)})[0]
+        assert y.shape == (n, 12)
+
+
+def test_json_meets_the_contract(exported):
+    d, _ = exported
+    meta = json.loads((d / "pol.json").read_text())
+    for k in ("schema_version", "name", "onnx", "created_utc", "commit", "seed", "iterations",
+              "train_config", "control_dt", "physics_dt", "decimation", "joint_order",
+              "default_pose", "kp", "kd", "action", "soft_limits", "observation",
+              "lift_command", "lift_schedule", "evaluation"):
+        assert k in meta, k
+    assert meta["schema_version"] == 1 and meta["onnx"] == "pol.onnx" and meta["iterations"] == 2
+    assert meta["joint_order"][0] == "FR_hip" and len(meta["default_pose"]) == 12
+    assert meta["control_dt"] == pytest.approx(0.02) and meta["decimation"] == 4
+    assert meta["action"]["mode"] == "delta_target"
+    lin = meta["observation"]["terms"][0]
+    assert lin["name"] == "base_lin_vel" and lin["source"] == "zero"
+    sched = LiftSchedule.from_metadata(meta["lift_schedule"])
+    assert sched.periods >= 1
+    sig = {t["name"]: np.zeros(t["size"]) for t in meta["observation"]["terms"]}
+    assert build_observation(meta["observation"], sig).shape == (49,)
+
+
+def test_eval_runs_on_export(exported, tmp_path):
+    d, _ = exported
+    from policy_train.evaluate import evaluate_policy
+
+    out = tmp_path / "policy.md"
+    r = evaluate_policy(d / "pol.onnx", episodes=1, legs=("FL",), results_path=out,
+                        log=lambda s: None)
+    assert set(r["legs"]) == {"FL"} and 0.0 <= r["legs"]["FL"]["success"] <= 1.0
+    assert out.exists() and "| FL |" in out.read_text()
+    assert json.loads((d / "pol.json").read_text())["evaluation"]["legs"]["FL"]["episodes"] == 1
