@@ -37,6 +37,8 @@ class Candidate:
     imu: bool = False
     grid: float | None = None
     spec: bool = False  # changes the compiled model (no model cache across parameter values)
+    log: bool = False  # coarse grid spaced logarithmically (a parameter known to a factor)
+    hints: tuple[float, ...] = ()  # extra coarse-grid values read off the recording
 
     @property
     def key(self) -> str:
@@ -61,12 +63,18 @@ def _effort(location: str) -> float:
     return float(EFFORT_LIMIT[["hip", "thigh", "calf"].index(location.split("_")[1])])
 
 
-def dynamic_candidates(location: str, mount: str, peak_torque: float | None = None) -> list[Candidate]:
+def dynamic_candidates(location: str, mount: str, peak_torque: float | None = None,
+                       plateau: float | None = None) -> list[Candidate]:
     """The dynamic candidates that make sense at ``location`` (a joint name or ``"all"``).
 
     peak_torque: the largest torque (N m) the joint at ``location`` is seen to need in the
     recording; a torque limit is searched below 1.2 times it (above, it never binds and the
-    cost is flat), else up to the effort limit."""
+    cost is flat), else up to the effort limit, on a logarithmic grid (a binding limit can be
+    a tenth of the demand). plateau: the largest estimated torque (N m) the motor is recorded
+    to deliver (``tau_*``), tried as a limit (a saturating motor plateaus there).
+
+    Link masses are tried on the located joint's link and on the links it carries (thigh,
+    calf of the same leg): a heavier thigh loads the hip joint most."""
     a = np.array
     j = _joints(location)
     out = [
@@ -97,14 +105,24 @@ def dynamic_candidates(location: str, mount: str, peak_torque: float | None = No
         lim = _effort(location)
         if peak_torque is not None and np.isfinite(peak_torque) and peak_torque > 0:
             lim = min(lim, 1.2 * float(peak_torque))
+        lo_lim = min(0.3, 0.05 * lim)
+        hints = ()
+        if plateau is not None and np.isfinite(plateau) and lo_lim < plateau < lim:
+            hints = (float(plateau),)
         out += [
             Candidate("backlash", location, ("half_width",), a([0.0]), a([0.08]),
                       lambda x: [fx.Backlash(x[0], joints=j)], a([0.0])),
-            Candidate("torque_limit", location, ("limit",), a([min(0.3, 0.05 * lim)]), a([lim]),
-                      lambda x: [fx.TorqueLimit(x[0], joints=j)], a([lim])),
-            Candidate("link_mass", location, ("scale",), a([0.2]), a([5.0]),
-                      lambda x: [fx.LinkMass(x[0], location)], a([1.0]), spec=True),
+            Candidate("torque_limit", location, ("limit",), a([lo_lim]), a([lim]),
+                      lambda x: [fx.TorqueLimit(x[0], joints=j)], a([lim]), log=True,
+                      hints=hints),
         ]
+        leg, joint = location.split("_")
+        links = [location] + [f"{leg}_{c}" for c in ("thigh", "calf")
+                              if ("hip", "thigh", "calf").index(c)
+                              > ("hip", "thigh", "calf").index(joint)]
+        out += [Candidate("link_mass", link, ("scale",), a([0.2]), a([5.0]),
+                          lambda x, lk=link: [fx.LinkMass(x[0], lk)], a([1.0]),
+                          spec=True) for link in links]
     return out
 
 

@@ -17,9 +17,15 @@ Pipeline (``docs/sim2real.md``):
    Confidence intervals (95 %) come from the Jacobian of the normalised residuals at the
    optimum, inflated for the residuals' autocorrelation (:data:`AUTOCORR` samples).
 5. **Rank** on the held-out split by a BIC, ``n_eff ln(SSE / n) + k ln(n_eff)`` with
-   ``n_eff = n / AUTOCORR``; packet loss counts one parameter per detected drop.
-6. **Decide**: the gap is significant when the held-out gap exceeds :data:`MIN_GAP` and the
-   best effect removes at least :data:`MIN_REDUCTION` of it. Greedy combination: the next
+   ``n_eff = n / AUTOCORR``; packet loss counts one parameter per detected drop. Scored per
+   window: a held-out window whose nominal residual is an outlier against the recording's own
+   spread of window residuals (median + 3 MAD sigmas) and that no candidate reduces by
+   :data:`MIN_REDUCTION` is left out of every score (a residual the library cannot explain,
+   e.g. a foot leaving the floor mid-window); on the ground, outlier windows are also kept out
+   of localisation, fit-window choice and the IMU fits.
+6. **Decide**: the gap is significant when the held-out gap exceeds :data:`MIN_GAP` and some
+   effect removes at least :data:`MIN_REDUCTION` of it with a lower BIC than the nominal
+   simulator; the answer is the best-BIC effect among those. Greedy combination: the next
    candidate of a different kind is added while it removes a further :data:`MIN_EXTRA` of the
    original gap.
 """
@@ -85,6 +91,9 @@ class EffectFit:
     x: np.ndarray | None = field(default=None, repr=False)
     drop_times: np.ndarray | None = field(default=None, repr=False)
     partner_x: np.ndarray | None = field(default=None, repr=False)
+    win_ss: np.ndarray | None = field(default=None, repr=False)  # (W, C) held-out windows
+    win_n: np.ndarray | None = field(default=None, repr=False)  # (W,) samples per window
+    k_bic: int | None = field(default=None, repr=False)  # parameters in the BIC, when not k
 
     def effects(self) -> list:
         if self.name == "packet_loss":
@@ -151,6 +160,8 @@ class _Problem:
         self.held = [w for k, w in enumerate(self.windows) if k % 3 == 2]
         self.held_mask = self._mask(self.held)
         self.train_mask = self._mask(self.train)
+        self.keep = np.ones(len(self.held), bool)  # held-out windows that are scored
+        self.imu_mask = self.train_mask  # training samples of the IMU fits (set by diagnose)
         self.evals = 0
 
     def _mask(self, windows) -> np.ndarray:
@@ -176,6 +187,42 @@ class _Problem:
 
     def gap(self, pred: Prediction, mask: np.ndarray, channels=None) -> float:
         return mt.gap(self.residual(pred, mask), self.cs.noise, channels)
+
+    def window_stats(self, pred: Prediction, windows) -> tuple[np.ndarray, np.ndarray]:
+        """(W, C) sums of squared normalised residuals and (W,) sample counts per window."""
+        ss = np.zeros((len(windows), len(self.cs.names)))
+        n = np.zeros(len(windows))
+        for i, (a, b) in enumerate(windows):
+            mk = np.zeros(self.rec.n, bool)
+            mk[a + 1:b] = True
+            r = self.residual(pred, mk)
+            ss[i], n[i] = np.sum(r**2, axis=0), r.shape[0]
+        return ss, n
+
+    def stats_gap(self, ss: np.ndarray, n: np.ndarray, sel: np.ndarray) -> float:
+        """The gap (:func:`sim2real.metrics.gap`) of the windows ``sel`` from window stats."""
+        nt = float(n[sel].sum())
+        if nt <= 0:
+            return 0.0
+        ms = ss[sel].sum(axis=0) / nt - mt._noise_allowance(self.cs.noise, int(nt))
+        return float(np.sqrt(np.mean(np.maximum(ms, 0.0))))
+
+    def window_ms(self, ss: np.ndarray, n: np.ndarray) -> np.ndarray:
+        """(W,) noise-corrected mean square normalised residual of each window."""
+        ms = ss / np.maximum(n, 1)[:, None] - np.stack(
+            [mt._noise_allowance(self.cs.noise, int(k)) for k in n])
+        return np.mean(np.maximum(ms, 0.0), axis=1)
+
+    def score(self, fit: EffectFit, held: Prediction | None = None) -> EffectFit:
+        """Set ``fit``'s held-out gap and BIC on the scored windows (``keep``); ``held``: its
+        held-out prediction (stats kept for rescoring)."""
+        if held is not None:
+            fit.win_ss, fit.win_n = self.window_stats(held, self.held)
+        fit.gap_after_heldout = self.stats_gap(fit.win_ss, fit.win_n, self.keep)
+        nt = float(fit.win_n[self.keep].sum()) * fit.win_ss.shape[1]
+        k = fit.k if fit.k_bic is None else fit.k_bic
+        fit.bic = self.bic(float(fit.win_ss[self.keep].sum()), int(nt), k)
+        return fit
 
 
 def _progress(cfg: DiagnoseConfig, msg: str) -> None:
@@ -218,9 +265,17 @@ def _peak_torque(rec: Recording) -> np.ndarray:
 
 
 def _fit_scalar(f: Callable[[float], float], lo: float, hi: float, grid: float | None,
-                nominal: float) -> float:
-    """Coarse grid (with the nominal value) then a bounded Brent search / fine grid."""
-    xs = np.unique(np.concatenate([np.linspace(lo, hi, 5), [nominal]]))
+                nominal: float, log: bool = False, hints=()) -> float:
+    """Coarse grid (with the nominal value and ``hints``; 7 log-spaced points when ``log``,
+    steps of 5 ``grid`` when given) then a bounded Brent search / fine grid."""
+    if grid is not None:  # a grid-resolved parameter: coarse steps of 5 grid steps (a
+        # 15 ms coarse step let ground latency settle in a neighbouring basin)
+        coarse = np.arange(lo, hi + grid / 2, 5 * grid)
+    elif log and lo > 0:
+        coarse = np.geomspace(lo, hi, 7)
+    else:
+        coarse = np.linspace(lo, hi, 5)
+    xs = np.unique(np.concatenate([coarse, [nominal], np.asarray(hints, float)]))
     vals = np.array([f(x) for x in xs])
     b = int(np.argmin(vals))
     a_, c_ = xs[max(b - 1, 0)], xs[min(b + 1, xs.size - 1)]
@@ -277,7 +332,7 @@ def _fit_dynamic(pb: _Problem, cand: Candidate, fit_w, fit_mask) -> EffectFit:
         return pb.sse(pred_at(x), fit_mask)[0]
 
     x = np.array([_fit_scalar(lambda v: cost(np.array([v])), cand.lo[0], cand.hi[0],
-                              cand.grid, cand.nominal[0])])
+                              cand.grid, cand.nominal[0], cand.log, cand.hints)])
     step = cand.grid if cand.grid else (cand.hi[0] - cand.lo[0]) * 0.01
 
     def res_fn(xx):
@@ -285,11 +340,10 @@ def _fit_dynamic(pb: _Problem, cand: Candidate, fit_w, fit_mask) -> EffectFit:
 
     ci = _ci_from_jacobian(res_fn, x, cand.lo, cand.hi, [step])
     held = pb.run(cand.build(x), pb.held, key=key)
-    sse, n = pb.sse(held, pb.held_mask)
-    return EffectFit(cand.name, [cand.location], dict(zip(cand.params, x.tolist(), strict=True)),
-                     {p: ci[i].tolist() for i, p in enumerate(cand.params)},
-                     pb.gap(held, pb.held_mask), pb.bic(sse, n, 1), 1, pb.evals - e0,
-                     candidate=cand, x=x)
+    fit = EffectFit(cand.name, [cand.location], dict(zip(cand.params, x.tolist(), strict=True)),
+                    {p: ci[i].tolist() for i, p in enumerate(cand.params)},
+                    0.0, 0.0, 1, pb.evals - e0, candidate=cand, x=x)
+    return pb.score(fit, held)
 
 
 def _imu_transform(cand: Candidate, x: np.ndarray, pred: Prediction, t) -> Prediction:
@@ -303,7 +357,7 @@ def _fit_imu(pb: _Problem, cand: Candidate, base_train: Prediction, base_held: P
              base_k: int = 0) -> EffectFit:
     rec, cs = pb.rec, pb.cs
     imu_ch = np.concatenate([cs.index("gyro"), cs.index("acc")])
-    m = pb.train_mask & base_train.mask
+    m = pb.imu_mask & base_train.mask
     pg, pa = np.nan_to_num(base_train.gyro[m]), np.nan_to_num(base_train.acc[m])
     rg, ra = rec.base_gyro[m], rec.base_acc[m]
     if cand.name == "imu_bias":
@@ -324,22 +378,20 @@ def _fit_imu(pb: _Problem, cand: Candidate, base_train: Prediction, base_held: P
     else:  # time offset: grid at 0.5 ms then parabola
         def cst(v):
             tr = _imu_transform(cand, np.array([v]), base_train, rec.t)
-            return float(np.sum(pb.residual(tr, pb.train_mask)[:, imu_ch] ** 2))
+            return float(np.sum(pb.residual(tr, pb.imu_mask)[:, imu_ch] ** 2))
         x = np.array([_fit_scalar(cst, -0.05, 0.05, 0.0005, 0.0)])
 
     def res_fn(xx):
         tr = _imu_transform(cand, xx, base_train, rec.t)
-        return pb.residual(tr, pb.train_mask)[:, imu_ch].ravel()
+        return pb.residual(tr, pb.imu_mask)[:, imu_ch].ravel()
 
     steps = [1e-3] * len(x) if cand.name != "imu_time_offset" else [5e-4]
     ci = _ci_from_jacobian(res_fn, x, cand.lo, cand.hi, steps)
     held = _imu_transform(cand, x, base_held, rec.t)
-    sse, n = pb.sse(held, pb.held_mask)
-    k = len(x) + base_k
-    return EffectFit(cand.name, [cand.location], dict(zip(cand.params, x.tolist(), strict=True)),
-                     {p: ci[i].tolist() for i, p in enumerate(cand.params)},
-                     pb.gap(held, pb.held_mask), pb.bic(sse, n, k), len(x), 0,
-                     candidate=cand, x=x)
+    fit = EffectFit(cand.name, [cand.location], dict(zip(cand.params, x.tolist(), strict=True)),
+                    {p: ci[i].tolist() for i, p in enumerate(cand.params)},
+                    0.0, 0.0, len(x), 0, candidate=cand, x=x, k_bic=len(x) + base_k)
+    return pb.score(fit, held)
 
 
 def _detect_drops(pb: _Problem, windows) -> tuple[np.ndarray, int]:
@@ -392,12 +444,10 @@ def _fit_packet_loss(pb: _Problem) -> EffectFit | None:
     h = z * np.sqrt(p * (1 - p) / n_train + z**2 / (4 * n_train**2)) / den
     drops = np.sort(np.concatenate([d_train, d_held]))
     held = pb.run([PacketLoss(drop_times=drops)], pb.held, key="nominal")
-    sse, n = pb.sse(held, pb.held_mask)
-    k = int(d_train.size)
-    return EffectFit("packet_loss", ["all"], {"probability": p},
-                     {"probability": [max(c - h, 0.0), min(c + h, 1.0)]},
-                     pb.gap(held, pb.held_mask), pb.bic(sse, n, k), k, pb.evals - e0,
-                     drop_times=drops)
+    fit = EffectFit("packet_loss", ["all"], {"probability": p},
+                    {"probability": [max(c - h, 0.0), min(c + h, 1.0)]},
+                    0.0, 0.0, int(d_train.size), pb.evals - e0, drop_times=drops)
+    return pb.score(fit, held)
 
 
 def _refit_pair(pb: _Problem, a: EffectFit, b: EffectFit, fit_w, fit_mask) -> EffectFit | None:
@@ -427,10 +477,8 @@ def _refit_pair(pb: _Problem, a: EffectFit, b: EffectFit, fit_w, fit_mask) -> Ef
     z = es.result.xbest if es.result.xbest is not None else z0
     x = lo + np.clip(z, 0, 1) * span
     held = pb.run(build(z), pb.held)
-    sse, n = pb.sse(held, pb.held_mask)
-    fit = EffectFit(cb.name, [cb.location], {cb.params[0]: float(x[1])}, dict(b.ci),
-                    pb.gap(held, pb.held_mask), pb.bic(sse, n, 2), 2, b.evaluations,
-                    candidate=cb, x=x[1:])
+    fit = pb.score(EffectFit(cb.name, [cb.location], {cb.params[0]: float(x[1])}, dict(b.ci),
+                             0.0, 0.0, 2, b.evaluations, candidate=cb, x=x[1:]), held)
     fit.partner_x = x[:1]  # a's parameter within the pair, applied if the pair is chosen
     return fit
 
@@ -456,34 +504,53 @@ def diagnose(rec: Recording, config: DiagnoseConfig | None = None) -> Diagnosis:
                    f"(joints {gap_dyn:.4f}, body IMU {gap_imu:.4f})")
 
     # -- screening
+    # windows the replay cannot re-synchronise (e.g. a foot leaving the floor mid-window)
+    # stand out against the recording's own spread of per-window residuals
+    ss_all, n_all = pb.window_stats(nominal, pb.windows)
+    outlier = _outlier_windows(pb.window_ms(ss_all, n_all))
+    good_train = [w for k, w in enumerate(pb.windows) if k % 3 != 2 and not outlier[k]]
     edge = np.zeros(rec.n, bool)
     for a, b in pb.windows:
         edge[a + 8:b - 8] = True
-    share = mt.torque_residual_share(rec, nominal, _mass_fn(rec), pb.train_mask & edge)
+    # on the ground the torque residual is located on the windows the replay follows (an
+    # outlier window's residual is a contact event the replay missed, not a joint's torque)
+    loc_mask = pb._mask(good_train) if rec.mount == "ground" and len(good_train) >= 2 \
+        else pb.train_mask
+    share = mt.torque_residual_share(rec, nominal, _mass_fn(rec), loc_mask & edge)
     top = int(np.argmax(share))
     location = SDK_JOINT_NAMES[top] if share[top] >= TORQUE_SHARE_LOCAL else "all"
     screening = {"gap_joints": gap_dyn, "gap_imu": gap_imu,
                  "torque_share": {n: float(s) for n, s in zip(SDK_JOINT_NAMES, share, strict=True)},
                  "location": location}
+    screening["outlier_windows"] = [_span(rec, w) for w, o in zip(pb.windows, outlier,
+                                                                   strict=True) if o]
     cands: list[Candidate] = []
     if gap_dyn > DYN_SCREEN[rec.mount]:
-        peak = None
+        peak = plateau = None
         if location != "all":
-            peak = float(_peak_torque(rec)[SDK_JOINT_NAMES.index(location)])
-        cands += dynamic_candidates(location, rec.mount, peak)
+            j = SDK_JOINT_NAMES.index(location)
+            peak = float(_peak_torque(rec)[j])
+            if rec.tau is not None:
+                plateau = float(np.percentile(np.abs(rec.tau[:, j]), 99.5))
+        cands += dynamic_candidates(location, rec.mount, peak, plateau)
     imu_ok = gap_imu > MIN_GAP / 2
     _progress(cfg, f"screening: joint gap -> {'location ' + location if cands else 'none'}; "
                    f"body-IMU gap -> {'IMU candidates' if imu_ok else 'none'}")
 
     # -- fit windows: the training windows with the largest nominal cost
-    w_cost = []
-    for a, b in pb.train:
-        mk = np.zeros(rec.n, bool)
-        mk[a + 1:b] = True
-        w_cost.append(float(np.sum(pb.residual(nominal, mk)[:, dyn_ch] ** 2)))
+    # (on the ground, not the outlier windows: there a contact event the replay cannot
+    # re-synchronise dominates the cost, and a fit there chases it)
+    train_idx = [k for k in range(len(pb.windows)) if k % 3 != 2]
+    w_cost = np.array([float(np.sum(ss_all[k, dyn_ch])) for k in train_idx])
+    if rec.mount == "ground" and np.sum(~outlier[train_idx]) >= cfg.fit_windows:
+        w_cost[outlier[train_idx]] = -np.inf
     order = np.argsort(w_cost)[::-1]
     fit_w = sorted(pb.train[k] for k in order[: cfg.fit_windows])
     fit_mask = pb._mask(fit_w)
+    # IMU effects are fitted in closed form on the training windows the replay follows (an
+    # outlier window's base motion is the replay's failure, not the IMU's)
+    if len(good_train) >= 2:
+        pb.imu_mask = pb._mask(good_train)
 
     fits: list[EffectFit] = []
     for cand in cands:
@@ -508,8 +575,21 @@ def diagnose(rec: Recording, config: DiagnoseConfig | None = None) -> Diagnosis:
             _progress(cfg, f"  {cand.key:<28} {_fmt_params(f)}  held-out gap "
                            f"{f.gap_after_heldout:.4f}")
     fits += imu_fits
-    sse0, n0 = pb.sse(nominal, pb.held_mask)
-    bic0 = pb.bic(sse0, n0, 0)
+    # score on the held-out windows except the outliers that no candidate explains
+    held_idx = [k for k in range(len(pb.windows)) if k % 3 == 2]
+    ss0, n0 = ss_all[held_idx], n_all[held_idx]
+    pb.keep = _scored_windows(pb, ss0, n0, outlier[held_idx], fits)
+    gap_all_held = gap_held
+    gap_held = pb.stats_gap(ss0, n0, pb.keep)
+    for f in fits:
+        pb.score(f)
+    bic0 = pb.bic(float(ss0[pb.keep].sum()), int(n0[pb.keep].sum()) * ss0.shape[1], 0)
+    screening["gap_heldout_all_windows"] = gap_all_held
+    screening["unexplained_windows"] = [_span(rec, pb.held[i])
+                                        for i in np.nonzero(~pb.keep)[0]]
+    if not pb.keep.all():
+        _progress(cfg, f"left out {int(np.sum(~pb.keep))} held-out window(s) that no candidate "
+                       f"explains: held-out gap {gap_all_held:.4f} -> {gap_held:.4f}")
     fits.sort(key=lambda f: f.bic)
 
     # -- decision and greedy combination
@@ -517,37 +597,41 @@ def diagnose(rec: Recording, config: DiagnoseConfig | None = None) -> Diagnosis:
     gap_after = gap_held
     after_pred = nominal
     significant = False
-    if fits and gap_held > MIN_GAP:
-        best = fits[0]
-        if best.bic < bic0 and 1 - best.gap_after_heldout / gap_held >= MIN_REDUCTION:
-            significant = True
-            best.chosen = True
-            chosen.append(best)
-            gap_after = best.gap_after_heldout
-            after_pred = _held_pred(pb, chosen, nominal)
-            # greedy: add the best remaining effect of another kind (IMU <-> dynamic), or a
-            # second dynamic one, while each removes a further MIN_EXTRA of the gap
-            tried = 0
-            for other in list(fits[1:]):
-                if len(chosen) >= 3 or tried >= 3 or gap_after < max(MIN_GAP, 0.3 * gap_held):
-                    break
-                if any(o.name == other.name for o in chosen):
-                    continue
-                tried += 1
-                trial = _combine(pb, chosen, other, fit_w, fit_mask, nominal)
-                if trial is None:
-                    continue
-                if gap_after - trial.gap_after_heldout >= MIN_EXTRA * gap_held and \
-                        trial.bic < chosen[-1].bic:
-                    if trial.partner_x is not None:
-                        prev = chosen[-1]
-                        prev.x = trial.partner_x
-                        prev.parameters = {prev.candidate.params[0]: float(trial.partner_x[0])}
-                    trial.chosen = True
-                    chosen.append(trial)
-                    gap_after = trial.gap_after_heldout
-                    after_pred = _held_pred(pb, chosen, nominal)
-                    fits = [f for f in fits if f is not other]
+    # the best-BIC effect among those that remove the required fraction of the gap (a
+    # better-BIC one that does not is a runner-up, not the answer)
+    eligible = [f for f in fits if f.bic < bic0
+                and 1 - f.gap_after_heldout / max(gap_held, 1e-12) >= MIN_REDUCTION]
+    if eligible and gap_held > MIN_GAP:
+        best = eligible[0]
+        fits = [best] + [f for f in fits if f is not best]
+        significant = True
+        best.chosen = True
+        chosen.append(best)
+        gap_after = best.gap_after_heldout
+        after_pred = _held_pred(pb, chosen, nominal)
+        # greedy: add the best remaining effect of another kind (IMU <-> dynamic), or a
+        # second dynamic one, while each removes a further MIN_EXTRA of the gap
+        tried = 0
+        for other in list(fits[1:]):
+            if len(chosen) >= 3 or tried >= 3 or gap_after < max(MIN_GAP, 0.3 * gap_held):
+                break
+            if any(o.name == other.name for o in chosen):
+                continue
+            tried += 1
+            trial = _combine(pb, chosen, other, fit_w, fit_mask, nominal)
+            if trial is None:
+                continue
+            if gap_after - trial.gap_after_heldout >= MIN_EXTRA * gap_held and \
+                    trial.bic < chosen[-1].bic:
+                if trial.partner_x is not None:
+                    prev = chosen[-1]
+                    prev.x = trial.partner_x
+                    prev.parameters = {prev.candidate.params[0]: float(trial.partner_x[0])}
+                trial.chosen = True
+                chosen.append(trial)
+                gap_after = trial.gap_after_heldout
+                after_pred = _held_pred(pb, chosen, nominal)
+                fits = [f for f in fits if f is not other]
     ranked = chosen + [f for f in fits if not f.chosen]
     where = _where(pb, nominal, pb.train_mask | pb.held_mask)
     where_after = _where(pb, after_pred, pb.held_mask) if significant else {}
@@ -558,6 +642,41 @@ def diagnose(rec: Recording, config: DiagnoseConfig | None = None) -> Diagnosis:
                    f"({pb.evals} replays, {secs:.1f} s)")
     return Diagnosis(significant, gap_held, gap_after, gap_train, ranked, where, where_after,
                      screening, rec, nominal, after_pred, pb.held_mask, secs)
+
+
+def _outlier_windows(ms: np.ndarray, k: float = 3.0) -> np.ndarray:
+    """(W,) bool: windows whose noise-corrected mean square residual ``ms`` is an outlier
+    above the recording's own spread (median + k robust sigmas, MAD) and above the
+    significance floor."""
+    med = float(np.median(ms))
+    mad = 1.4826 * float(np.median(np.abs(ms - med)))
+    return (ms > med + k * max(mad, 1e-3 * med)) & (ms > MIN_GAP**2)
+
+
+def _scored_windows(pb: _Problem, ss0, n0, outlier: np.ndarray,
+                    fits: list[EffectFit]) -> np.ndarray:
+    """(W_held,) bool: the held-out windows that are scored: all but the outliers that no
+    fitted candidate reduces by :data:`MIN_REDUCTION` (a residual no effect of the library
+    explains, e.g. a contact event the replay cannot re-synchronise). At least half the
+    held-out windows are kept (those of lowest nominal residual first)."""
+    ms0 = pb.window_ms(ss0, n0)
+    keep = np.ones(ms0.size, bool)
+    for w in np.nonzero(outlier)[0]:
+        best = min((pb.window_ms(f.win_ss, f.win_n)[w] for f in fits if f.win_ss is not None),
+                   default=ms0[w])
+        keep[w] = best <= (1 - MIN_REDUCTION) * ms0[w]
+    need = int(np.ceil(ms0.size / 2))
+    if keep.sum() < need:
+        for w in np.argsort(ms0):
+            if keep.sum() >= need:
+                break
+            keep[w] = True
+    return keep
+
+
+def _span(rec: Recording, w) -> list[float]:
+    a, b = w
+    return [float(rec.t[a] - rec.t[0]), float(rec.t[b - 1] - rec.t[0])]
 
 
 def _combine(pb: _Problem, chosen: list[EffectFit], other: EffectFit, fit_w, fit_mask,

@@ -166,3 +166,40 @@ def test_torque_limit_search_stays_where_the_limit_binds():
     assert tl.hi[0] == pytest.approx(1.2 * peak[5]) and 0 < tl.lo[0] < tl.hi[0]
     assert "latency" not in c
     assert "latency" in {x.name for x in dynamic_candidates("FL_calf", "ground", 3.0)}
+
+
+def test_candidates_cover_carried_links_and_log_torque_grid():
+    from sim2real.candidates import dynamic_candidates
+
+    cands = dynamic_candidates("RR_hip", "suspended", 6.0, plateau=0.7)
+    assert {c.location for c in cands if c.name == "link_mass"} == {"RR_hip", "RR_thigh",
+                                                                   "RR_calf"}
+    assert {c.location for c in dynamic_candidates("RR_calf", "suspended", 6.0)
+            if c.name == "link_mass"} == {"RR_calf"}
+    tl = next(c for c in cands if c.name == "torque_limit")
+    assert tl.log and tl.hints == (0.7,)
+
+
+def test_outlier_windows_are_left_out_only_when_no_candidate_explains_them(short_null):
+    from sim2real.diagnose import EffectFit, _outlier_windows, _Problem, _scored_windows
+
+    ms = np.array([0.010, 0.012, 0.011, 0.30, 0.009, 0.013, 0.010])
+    assert _outlier_windows(ms).tolist() == [False] * 3 + [True] + [False] * 3
+    assert not _outlier_windows(np.full(7, 0.02)).any()
+    pb = _Problem(short_null, DiagnoseConfig())
+    c = len(pb.cs.names)
+    n0 = np.full(5, 200.0)
+    level = np.array([0.01, 0.01, 1.0, 0.01, 0.01])  # window 2: a residual nothing explains
+    ss0 = n0[:, None] * (pb.cs.noise + level[:, None])
+    outl = np.array([False, False, True, False, False])
+
+    def fit(scale):
+        f = EffectFit("x", ["all"], {}, {}, 0.0, 0.0, 1)
+        f.win_ss, f.win_n = n0[:, None] * (pb.cs.noise + scale[:, None] * level[:, None]), n0
+        return f
+
+    partial = fit(np.array([0.1, 0.1, 0.95, 0.1, 0.1]))
+    assert _scored_windows(pb, ss0, n0, outl, [partial]).tolist() == [1, 1, 0, 1, 1]
+    full = fit(np.full(5, 0.1))
+    assert _scored_windows(pb, ss0, n0, outl, [partial, full]).all()
+    assert ss0.shape == (5, c)
