@@ -60,9 +60,19 @@ class SolverConfig:
     """Solver settings. Times in s, eigenvalues in (rad/s)^2.
 
     max_offset: search range of ``t_d`` is [-max_offset, +max_offset].
-    min_eigenvalue: gate on the smallest eigenvalue of S_FF (authors: 0.015).
-    max_condition_number: gate on kappa(S_FF) (authors: 20).
-    min_correlation: gate on r at the optimum (authors: 0.9).
+
+    Gates: a refusal must mean "this result could be wrong", not "this motion is worse than
+    A2I's", because ``a2i-calib solve`` takes other people's logs. So the defaults refuse rank
+    deficiency (kappa, smallest eigenvalue) and what the data cannot pin down (the estimated
+    1-sigma uncertainties), while an ordinary ill-conditioned but well-measured motion
+    (kappa ~ 20-200, seen in random multi-joint motions) is accepted with its uncertainty.
+    The authors' own gates (kappa < 20, lambda_min > 0.015, r > 0.9) are
+    :meth:`paper_gates`, for the robot's own calibration motion (kappa ~ 1 by design).
+    min_eigenvalue: gate on the smallest eigenvalue of S_FF, (rad/s)^2.
+    max_condition_number: gate on kappa(S_FF).
+    min_correlation: gate on r at the optimum.
+    max_rotation_std_deg: gate on the rotation's 1-sigma uncertainty (expected geodesic error).
+    max_time_offset_std_s: gate on the offset's 1-sigma uncertainty.
     coarse_step: grid of the coarse scan; must be well below 1/(4 f_max) of the motion.
     refine_tol: absolute tolerance of the continuous maximisation.
     gap_factor: an encoder interval longer than gap_factor x the median period is a gap; the
@@ -78,9 +88,11 @@ class SolverConfig:
     """
 
     max_offset: float = 0.5
-    min_eigenvalue: float = 0.015
-    max_condition_number: float = 20.0
-    min_correlation: float = 0.9
+    min_eigenvalue: float = 1e-3
+    max_condition_number: float = 1000.0
+    min_correlation: float = 0.8
+    max_rotation_std_deg: float = 1.0
+    max_time_offset_std_s: float = 0.005
     coarse_step: float = 0.002
     refine_tol: float = 1e-7
     gap_factor: float = 4.0
@@ -90,6 +102,13 @@ class SolverConfig:
     min_samples: int = 200
     min_overlap_s: float = 2.0
     rotation_method: str = "procrustes"
+
+    @classmethod
+    def paper_gates(cls, **overrides) -> SolverConfig:
+        """The authors' gates (kappa < 20, lambda_min > 0.015 (rad/s)^2, r > 0.9): for a motion
+        designed to excite every axis, where anything worse means the execution went wrong."""
+        base = {"min_eigenvalue": 0.015, "max_condition_number": 20.0, "min_correlation": 0.9}
+        return cls(**{**base, **overrides})
 
     def __post_init__(self):
         if not self.max_offset > 0:
@@ -533,6 +552,17 @@ def solve(t_enc, omega_foot, t_imu, omega_imu, config: SolverConfig | None = Non
             f"correlation {r:.3f} < {cfg.min_correlation:g}: IMU and encoder angular velocities "
             "do not match well (noise, wrong leg/stream, or a clock problem)"
         )
+    rot_std_deg = float(np.degrees(np.sqrt(np.trace(rot_cov))))
+    if not rot_std_deg <= cfg.max_rotation_std_deg:
+        reasons.append(
+            f"rotation uncertainty {rot_std_deg:.3g} deg > {cfg.max_rotation_std_deg:g} deg: the "
+            "motion does not pin the rotation down against this noise"
+        )
+    if not tau_std <= cfg.max_time_offset_std_s:
+        reasons.append(
+            f"time offset uncertainty {tau_std * 1e3:.3g} ms > "
+            f"{cfg.max_time_offset_std_s * 1e3:g} ms: the motion is too slow or too noisy"
+        )
     edge = cfg.edge_margin
     if k_best < edge or k_best > curve.size - 1 - edge or abs(tau) > tau_max - edge * h:
         reasons.append(
@@ -549,7 +579,7 @@ def solve(t_enc, omega_foot, t_imu, omega_imu, config: SolverConfig | None = Non
     result = SolverResult(
         rotation=rot, time_offset=tau, correlation=r, condition_number=kappa,
         min_eigenvalue=lam_min,
-        rotation_std_deg=float(np.degrees(np.sqrt(np.trace(rot_cov)))),
+        rotation_std_deg=rot_std_deg,
         time_offset_std_s=tau_std, samples=int(m.sum()), offsets=offsets,
         correlation_curve=curve,
         aligned=AlignedSignals(ss + t_ref, ss - tau + t_ref, f, ii_raw, w_in_foot),

@@ -178,17 +178,34 @@ def test_rank_deficient_motion_is_refused(motion):
     assert diag.reasons == exc.value.reasons
 
 
-def test_ill_conditioned_but_full_rank_motion_refused_by_condition_number():
+def test_ill_conditioned_but_full_rank_motion_gated_by_condition_number_when_asked():
     rng = np.random.default_rng(3)
     spec = make_motion(rng)
     squashed = MotionSpec(spec.freqs_hz, spec.amps, spec.phases, np.diag([1.0, 1.0, 0.18]))
     case = make_case(3, motion=squashed, noise_density=MODERATE)
     with pytest.raises(CalibrationRefused) as exc:
-        run(case, SolverConfig(min_eigenvalue=1e-4))
+        run(case, SolverConfig(min_eigenvalue=1e-4, max_condition_number=20))
     assert len(exc.value.reasons) == 1 and "condition number" in exc.value.reasons[0]
-    # the same data pass with a looser gate, and the rotation is still right
-    res = run(case, SolverConfig(min_eigenvalue=1e-4, max_condition_number=100))
+    # the authors' gates refuse it too
+    with pytest.raises(CalibrationRefused):
+        run(case, SolverConfig.paper_gates())
+    # the defaults accept it (full rank, well measured) and the rotation is right, with an
+    # uncertainty that says so
+    res = run(case)
+    assert res.condition_number > 20
     assert geodesic_error_deg(res.rotation, case.rotation) < 0.5
+    assert res.rotation_std_deg < 0.5
+
+
+def test_uncertainty_gates_refuse_what_the_data_cannot_pin_down():
+    case = make_case(4, time_offset=0.05, noise_density=MODERATE)
+    res = run(case)
+    with pytest.raises(CalibrationRefused) as exc:
+        run(case, SolverConfig(max_rotation_std_deg=res.rotation_std_deg / 2))
+    assert "rotation uncertainty" in " ".join(exc.value.reasons)
+    with pytest.raises(CalibrationRefused) as exc:
+        run(case, SolverConfig(max_time_offset_std_s=res.time_offset_std_s / 2))
+    assert "time offset uncertainty" in " ".join(exc.value.reasons)
 
 
 def test_low_correlation_refused_and_diagnostics_kept():
