@@ -175,19 +175,30 @@ def cmd_bench(args) -> int:
         from sim.table1 import render_markdown, run_table1
     except ImportError as e:
         raise _Fail(f"the bench needs the simulator: pip install '.[sim]' ({e})") from None
-    seeds = list(range(args.seeds))
-    legs = args.legs or list(LEGS)
     t0 = time.time()
-    _say(f"Table I: {len(seeds)} seeds x {len(legs)} legs x 3 noise levels x 4 motions, "
-         f"{args.workers or 'all'} worker processes")
-    rows = run_table1(seeds, legs, workers=args.workers,
-                      progress=lambda i, n: _say(f"  simulated {i}/{n} motions "
-                                                 f"({time.time() - t0:.0f} s)"))
-    md = render_markdown(rows, seeds, time.time() - t0)
+    if args.from_json:
+        from sim.table1 import rows_from_json
+
+        try:
+            rows = rows_from_json(Path(args.from_json).read_text())
+        except (OSError, ValueError, TypeError) as e:
+            raise _Fail(f"cannot read rows from {args.from_json}: {e}") from None
+        seeds = sorted({r.seed for r in rows})
+        md = render_markdown(rows, seeds)
+    else:
+        seeds = list(range(args.seeds))
+        legs = args.legs or list(LEGS)
+        _say(f"Table I: {len(seeds)} seeds x {len(legs)} legs x 3 noise levels x 4 motions, "
+             f"{args.workers or 'all'} worker processes")
+        rows = run_table1(seeds, legs, workers=args.workers,
+                          progress=lambda i, n: _say(f"  simulated {i}/{n} motions "
+                                                     f"({time.time() - t0:.0f} s)"))
+        md = render_markdown(rows, seeds, time.time() - t0)
     write_text_atomic(args.out, md)
-    # The raw rows beside the table, so that other summaries can be drawn without re-simulating.
-    write_text_atomic(Path(args.out).with_suffix(".json"),
-                      json.dumps([dataclasses.asdict(r) for r in rows], indent=0))
+    if not args.from_json:
+        # The raw rows beside the table, so that it can be re-rendered without re-simulating.
+        write_text_atomic(Path(args.out).with_suffix(".json"),
+                          json.dumps([dataclasses.asdict(r) for r in rows], indent=0))
     print(md)
     print(f"wrote {args.out}")
     return 0
@@ -251,6 +262,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seeds", type=int, default=3, help="seeds (default 3)")
     s.add_argument("--legs", type=_leg, nargs="*", default=None, help="subset of legs")
     s.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
+    s.add_argument("--from-json", default=None, metavar="ROWS",
+                   help="re-render the table from the rows a previous run saved (no simulation)")
     s.add_argument("--out", default="docs/results/table1.md", help="markdown output")
     s.set_defaults(func=cmd_bench)
     return p

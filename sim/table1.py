@@ -12,13 +12,15 @@ Two pipelines are scored on the same data:
   relative to the base (still-base assumption) and the rotation from the SVD of
   S_FF^-1 S_FI; no observability gates.
 * ``ours``: this toolkit: base rotation compensated with the body gyro, Procrustes rotation,
-  sub-sample offset; the gates are evaluated and their verdict counted (the estimate is still
-  scored, to compare like with like).
+  sub-sample offset; the authors' gates (``SolverConfig.paper_gates()``: kappa < 20,
+  lambda_min > 0.015, r > 0.9, plus our uncertainty gates) are evaluated and their verdict
+  counted (the estimate is still scored, to compare like with like).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -126,7 +128,7 @@ def score_run(run: MotionRun, motion: str, legs, noises, seed: int) -> list[Tabl
                 gates_pass = True
                 if pipeline == "ours":
                     try:
-                        solve(run.t, omega, imu.stamps, imu.gyro, SolverConfig())
+                        solve(run.t, omega, imu.stamps, imu.gyro, SolverConfig.paper_gates())
                     except CalibrationRefused:
                         gates_pass = False
                 rows.append(Table1Row(
@@ -185,6 +187,11 @@ def beats_baselines(rows: list[Table1Row], pipeline: str) -> dict:
     return out
 
 
+def rows_from_json(text: str) -> list[Table1Row]:
+    """Rows saved by ``a2i-calib bench`` (the JSON beside the table)."""
+    return [Table1Row(**d) for d in json.loads(text)]
+
+
 def _agg(vals):
     a = np.asarray(vals, dtype=float)
     return float(np.median(a)), float(np.max(a))
@@ -225,7 +232,7 @@ def render_markdown(rows: list[Table1Row], seeds, elapsed_s: float | None = None
         out += [f"## {title}", ""]
         head = "| leg | noise °/s/√Hz | motion | CN | CC | RE ° | geo ° | Δt ms |"
         if pipeline == "ours":
-            head += " gates pass |"
+            head += " paper gates pass |"
         head += " paper CN / CC / RE |"
         out += [head, "|" + "---|" * (head.count("|") - 1)]
         for leg in LEGS:

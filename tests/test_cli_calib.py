@@ -125,3 +125,18 @@ def test_demo_recovers_hidden_mounting(tmp_path, capsys):
                               np.array(truth["rotation_matrix"])) < 0.5
     assert abs(res["time_offset_s"] - truth["time_offset_s"]) < 1e-3
     assert "against truth" in capsys.readouterr().out
+
+
+def test_bench_renders_saved_rows_without_simulating(tmp_path):
+    rows = [dict(leg="FL", noise_deg=0.03, motion=m, pipeline=p, seed=0, cn=cn, cc=cc,
+                 re_euler_deg=re, geodesic_deg=re, offset_error_s=1e-5, gates_pass=m == "a2i")
+            for m, cn, cc, re in (("walk", 900.0, 0.9, 30.0), ("spin", 400.0, 0.9, 20.0),
+                                  ("wave", 60.0, 0.8, 40.0), ("a2i", 1.1, 0.999, 0.01))
+            for p in ("paper", "ours")]
+    src = tmp_path / "rows.json"
+    src.write_text(json.dumps(rows))
+    out = tmp_path / "t1.md"
+    assert main(["bench", "--from-json", str(src), "--out", str(out)]) == 0
+    text = out.read_text()
+    assert "| FL | 0.03 | a2i |" in text and "| paper | 1/1 | 1/1 | 1/1 |" in text
+    assert main(["bench", "--from-json", str(tmp_path / "none.json"), "--out", str(out)]) == 2
