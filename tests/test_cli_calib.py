@@ -23,8 +23,17 @@ def fl_plan():
     return plan_excitation(ExcitationConfig(leg="FL", periods=2))
 
 
-def _logs(tmp_path, plan, rotation, offset, *, noise=0.002, bias=(0.01, -0.02, 0.005),
-          hip_still=False, seed=0):
+def _logs(
+    tmp_path,
+    plan,
+    rotation,
+    offset,
+    *,
+    noise=0.002,
+    bias=(0.01, -0.02, 0.005),
+    hip_still=False,
+    seed=0,
+):
     """Encoder CSV at 500 Hz and IMU CSV at 400 Hz (irregular) for a leg playing ``plan``."""
     rng = np.random.default_rng(seed)
     t_enc = np.arange(0.0, plan.duration, 0.002)
@@ -57,8 +66,15 @@ def test_plan_writes_trajectory_and_reports_kappa(tmp_path, capsys):
     kappa = float(text.split("kappa(Sigma_FF) = ")[1].split()[0])
     assert kappa <= 1.02
     header = out.read_text().splitlines()[0].split(",")
-    assert header == ["t", "q_RL_hip", "q_RL_thigh", "q_RL_calf",
-                      "dq_RL_hip", "dq_RL_thigh", "dq_RL_calf"]
+    assert header == [
+        "t",
+        "q_RL_hip",
+        "q_RL_thigh",
+        "q_RL_calf",
+        "dq_RL_hip",
+        "dq_RL_thigh",
+        "dq_RL_calf",
+    ]
 
 
 @pytest.mark.parametrize("offset", [-0.43, 0.0123, 0.31])
@@ -66,14 +82,23 @@ def test_solve_recovers_rotation_and_offset(tmp_path, fl_plan, offset, capsys):
     rot = Rotation.random(random_state=int(abs(offset) * 1e4)).as_matrix()
     enc, imu = _logs(tmp_path, fl_plan, rot, offset)
     out = tmp_path / "result.json"
-    assert main(["solve", "--encoders", str(enc), "--imu", str(imu), "--leg", "FL",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["solve", "--encoders", str(enc), "--imu", str(imu), "--leg", "FL", "--out", str(out)])
+        == 0
+    )
     res = json.loads(out.read_text())
     assert res["leg"] == "FL" and res["version"] == 1
     assert geodesic_error_deg(np.array(res["rotation_matrix"]), rot) < 0.05
     assert abs(res["time_offset_s"] - offset) < 2e-4
-    for key in ("quaternion_wxyz", "rpy_deg", "condition_number", "correlation",
-                "rotation_std_deg", "time_offset_std_s", "samples"):
+    for key in (
+        "quaternion_wxyz",
+        "rpy_deg",
+        "condition_number",
+        "correlation",
+        "rotation_std_deg",
+        "time_offset_std_s",
+        "samples",
+    ):
         assert key in res
     assert "verdict: accepted" in capsys.readouterr().out
 
@@ -82,8 +107,10 @@ def test_solve_refuses_rank_deficient_motion_and_writes_nothing(tmp_path, fl_pla
     rot = Rotation.random(random_state=3).as_matrix()
     enc, imu = _logs(tmp_path, fl_plan, rot, 0.05, hip_still=True)
     out = tmp_path / "result.json"
-    assert main(["solve", "--encoders", str(enc), "--imu", str(imu), "--leg", "FL",
-                 "--out", str(out)]) == 2
+    assert (
+        main(["solve", "--encoders", str(enc), "--imu", str(imu), "--leg", "FL", "--out", str(out)])
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "refused" in err[0] and "eigenvalue" in err[0]
     assert not out.exists()
@@ -95,24 +122,43 @@ def test_solve_malformed_input_one_line_exit_2(tmp_path, capsys):
     imu = tmp_path / "imu.csv"
     imu.write_text("t,wx,wy,wz\n0,0,0,0\n")
     out = tmp_path / "r.json"
-    assert main(["solve", "--encoders", str(enc), "--imu", str(imu), "--leg", "FL",
-                 "--out", str(out)]) == 2
+    assert (
+        main(["solve", "--encoders", str(enc), "--imu", str(imu), "--leg", "FL", "--out", str(out)])
+        == 2
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "q_FL_calf" in err[0]
     assert not out.exists()
-    assert main(["solve", "--encoders", str(tmp_path / "missing.csv"), "--imu", str(imu),
-                 "--leg", "FL", "--out", str(out)]) == 2
+    assert (
+        main(
+            [
+                "solve",
+                "--encoders",
+                str(tmp_path / "missing.csv"),
+                "--imu",
+                str(imu),
+                "--leg",
+                "FL",
+                "--out",
+                str(out),
+            ]
+        )
+        == 2
+    )
     assert not out.exists()
 
 
 def test_bad_arguments_exit_2():
-    r = subprocess.run([sys.executable, "-m", "cli.calib", "plan", "--leg", "XX", "--out", "x"],
-                       check=False,
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "cli.calib", "plan", "--leg", "XX", "--out", "x"],
+        check=False,
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 2 and "unknown leg" in r.stderr
-    r = subprocess.run([sys.executable, "-m", "cli.calib", "--help"], check=False,
-                       capture_output=True,
-                       text=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "cli.calib", "--help"], check=False, capture_output=True, text=True
+    )
     assert r.returncode == 0 and "solve" in r.stdout
 
 
@@ -121,18 +167,37 @@ def test_demo_recovers_hidden_mounting(tmp_path, capsys):
     assert main(["demo", "--leg", "RR", "--seed", "11", "--out", str(out)]) == 0
     res = json.loads((out / "RR.json").read_text())
     truth = json.loads((out / "sim_truth.json").read_text())["RR"]
-    assert geodesic_error_deg(np.array(res["rotation_matrix"]),
-                              np.array(truth["rotation_matrix"])) < 0.5
+    assert (
+        geodesic_error_deg(np.array(res["rotation_matrix"]), np.array(truth["rotation_matrix"]))
+        < 0.5
+    )
     assert abs(res["time_offset_s"] - truth["time_offset_s"]) < 1e-3
     assert "against truth" in capsys.readouterr().out
 
 
 def test_bench_renders_saved_rows_without_simulating(tmp_path):
-    rows = [dict(leg="FL", noise_deg=0.03, motion=m, pipeline=p, seed=0, cn=cn, cc=cc,
-                 re_euler_deg=re, geodesic_deg=re, offset_error_s=1e-5, gates_pass=m == "a2i")
-            for m, cn, cc, re in (("walk", 900.0, 0.9, 30.0), ("spin", 400.0, 0.9, 20.0),
-                                  ("wave", 60.0, 0.8, 40.0), ("a2i", 1.1, 0.999, 0.01))
-            for p in ("paper", "ours")]
+    rows = [
+        {
+            "leg": "FL",
+            "noise_deg": 0.03,
+            "motion": m,
+            "pipeline": p,
+            "seed": 0,
+            "cn": cn,
+            "cc": cc,
+            "re_euler_deg": re,
+            "geodesic_deg": re,
+            "offset_error_s": 1e-5,
+            "gates_pass": m == "a2i",
+        }
+        for m, cn, cc, re in (
+            ("walk", 900.0, 0.9, 30.0),
+            ("spin", 400.0, 0.9, 20.0),
+            ("wave", 60.0, 0.8, 40.0),
+            ("a2i", 1.1, 0.999, 0.01),
+        )
+        for p in ("paper", "ours")
+    ]
     src = tmp_path / "rows.json"
     src.write_text(json.dumps(rows))
     out = tmp_path / "t1.md"
