@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/a2i-calib demo --leg FL
+	$(VENV)/bin/a2i-deploy --leg FL --sim
 
 test: $(STAMP)
 	$(PY) -m pytest -q -p no:cacheprovider

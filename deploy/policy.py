@@ -1,0 +1,210 @@
+"""The tripod policy on board: its metadata JSON and its ONNX network (``docs/policy-format.md``).
+
+``PolicyMeta.load(json_path)`` validates everything ``deploy`` relies on, so that nothing about a
+policy is hard-coded here; ``PolicyRunner`` runs the ONNX graph with ONNX Runtime on one thread
+(batch 1) and keeps the ``delta_target`` action state. Joint vectors are in SDK order
+(FR, FL, RR, RL x hip, thigh, calf), rad.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from calib.joints import SDK_JOINT_NAMES, check_leg
+from deploy.lift_schedule import LiftSchedule
+from deploy.observation import TERM_SIZES, check_terms
+
+__all__ = ["PolicyMeta", "PolicyRunner", "default_policy_path"]
+
+ACTION_MODES = ("delta_target",)
+
+
+def _vec12(d: Mapping, key: str, where: str = "") -> np.ndarray:
+    if key not in d:
+        raise ValueError(f"policy metadata lacks {where}{key}")
+    v = np.asarray(d[key], dtype=float)
+    if v.shape != (12,) or not np.all(np.isfinite(v)):
+        raise ValueError(f"policy metadata {where}{key} must be 12 finite numbers (SDK order)")
+    return v
+
+
+@dataclass
+class PolicyMeta:
+    """What the policy JSON (schema_version 1) tells deploy. Units SI, joint order SDK.
+
+    control_dt s; default_pose rad; kp N m/rad, kd N m s/rad; action_scale rad per unit action;
+    action_clip (unitless, on the raw action); soft_lower/soft_upper rad; observation: the
+    metadata's ``observation`` object (size, clip, terms); lift_command: leg -> term value
+    (``"none"`` included); schedule: the :class:`LiftSchedule` of ``lift_schedule``.
+    """
+
+    path: Path
+    onnx_path: Path
+    name: str
+    control_dt: float
+    default_pose: np.ndarray
+    kp: np.ndarray
+    kd: np.ndarray
+    action_scale: float
+    action_clip: float
+    action_mode: str
+    soft_lower: np.ndarray
+    soft_upper: np.ndarray
+    observation: dict
+    lift_command: dict[str, float]
+    schedule: LiftSchedule
+    raw: dict = field(repr=False, default_factory=dict)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> PolicyMeta:
+        p = Path(path)
+        try:
+            d = json.loads(p.read_text(encoding="utf-8"))
+        except OSError as e:
+            raise ValueError(f"cannot read policy metadata {str(p)!r}: {e.strerror or e}") from None
+        except json.JSONDecodeError as e:
+            raise ValueError(f"policy metadata {str(p)!r} is not valid JSON: {e.msg}") from None
+        try:
+            return cls.from_dict(d, p)
+        except ValueError as e:
+            raise ValueError(f"{p}: {e}") from None
+
+    @classmethod
+    def from_dict(cls, d: Mapping, path: Path) -> PolicyMeta:
+        if not isinstance(d, Mapping):
+            raise ValueError("policy metadata must be a JSON object")  # noqa: TRY004
+        if d.get("schema_version") != 1:
+            raise ValueError(f"unsupported schema_version {d.get('schema_version')!r} (need 1)")
+        if list(d.get("joint_order", [])) != list(SDK_JOINT_NAMES):
+            raise ValueError("joint_order must be the SDK order " + ", ".join(SDK_JOINT_NAMES))
+        onnx_name = d.get("onnx")
+        if not isinstance(onnx_name, str) or not onnx_name:
+            raise ValueError("policy metadata lacks the onnx file name")
+        dt = float(d.get("control_dt", float("nan")))
+        if not (np.isfinite(dt) and 0.001 <= dt <= 0.1):
+            raise ValueError(f"control_dt must be in [0.001, 0.1] s, got {d.get('control_dt')}")
+        act = d.get("action") or {}
+        if int(act.get("size", 0)) != 12:
+            raise ValueError("action.size must be 12")
+        mode = act.get("mode")
+        if mode not in ACTION_MODES:
+            raise ValueError(f"action.mode must be one of {ACTION_MODES}, got {mode!r}")
+        scale, clip = float(act.get("scale", "nan")), float(act.get("clip", "nan"))
+        if not (np.isfinite(scale) and scale > 0 and np.isfinite(clip) and clip > 0):
+            raise ValueError("action.scale and action.clip must be positive numbers")
+        lim = d.get("soft_limits") or {}
+        lower = _vec12(lim, "lower", "soft_limits.")
+        upper = _vec12(lim, "upper", "soft_limits.")
+        if np.any(lower >= upper):
+            raise ValueError("soft_limits.lower must be below soft_limits.upper")
+        obs = d.get("observation")
+        if not isinstance(obs, Mapping) or "terms" not in obs:
+            raise ValueError("policy metadata lacks observation.terms")
+        check_terms(obs["terms"])
+        size = sum(TERM_SIZES[t["name"]] for t in obs["terms"])
+        if int(obs.get("size", size)) != size:
+            raise ValueError(f"observation.size {obs.get('size')} != sum of term sizes {size}")
+        lc = d.get("lift_command") or {}
+        lift = {}
+        for leg in ("none", "FL", "FR", "RL", "RR"):
+            if leg not in lc or not np.isfinite(float(lc[leg])):
+                raise ValueError(f"lift_command lacks a finite value for {leg!r}")
+            lift[leg] = float(lc[leg])
+        kp, kd = _vec12(d, "kp"), _vec12(d, "kd")
+        if np.any(kp < 0) or np.any(kd < 0):
+            raise ValueError("kp and kd must be >= 0")
+        return cls(
+            path=path, onnx_path=path.parent / onnx_name, name=str(d.get("name", path.stem)),
+            control_dt=dt, default_pose=_vec12(d, "default_pose"), kp=kp, kd=kd,
+            action_scale=scale, action_clip=clip, action_mode=mode,
+            soft_lower=lower, soft_upper=upper, observation=dict(obs), lift_command=lift,
+            schedule=LiftSchedule.from_metadata(d.get("lift_schedule") or {}), raw=dict(d),
+        )
+
+    def lift_value(self, leg: str | None) -> float:
+        """The ``lift_command`` term's value for ``leg`` (None: no leg lifted)."""
+        return self.lift_command["none" if leg is None else check_leg(leg)]
+
+    @property
+    def obs_size(self) -> int:
+        return sum(TERM_SIZES[t["name"]] for t in self.observation["terms"])
+
+
+def default_policy_path(search: list[Path] | None = None) -> Path:
+    """The newest policy JSON (by ``created_utc``, then file time) in ``policies/`` of the
+    working directory, else of the installed source tree; ValueError when there is none."""
+    dirs = search or [Path.cwd() / "policies", Path(__file__).resolve().parents[1] / "policies"]
+    for d in dirs:
+        found = []
+        for p in sorted(d.glob("*.json")):
+            try:
+                meta = json.loads(p.read_text(encoding="utf-8"))
+            except (OSError, json.JSONDecodeError):
+                continue
+            if isinstance(meta, dict) and meta.get("schema_version") == 1 and "onnx" in meta:
+                found.append((str(meta.get("created_utc", "")), p.stat().st_mtime, p.name, p))
+        if found:
+            return max(found)[-1]
+    where = " or ".join(str(d) for d in dirs)
+    raise ValueError(f"no policy JSON found in {where}: give --policy PATH")
+
+
+class PolicyRunner:
+    """ONNX Runtime on one thread, batch 1: ``act(obs (49,)) -> raw actions (12,)`` float32.
+
+    Targets follow the metadata's ``delta_target`` rule (``step``): ``target = prev + scale *
+    clip(a, -c, c)``, clamped to the soft limits; ``reset(q)`` sets the previous target to the
+    joint positions when the policy (re)starts and zeroes the previous actions.
+    """
+
+    def __init__(self, meta: PolicyMeta):
+        import onnxruntime as ort  # deploy extra; imported here so the module loads without it
+
+        if not meta.onnx_path.is_file():
+            raise ValueError(f"policy network {meta.onnx_path} not found (named in {meta.path})")
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = 1
+        so.inter_op_num_threads = 1
+        so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        so.log_severity_level = 3
+        self.session = ort.InferenceSession(str(meta.onnx_path), so,
+                                            providers=["CPUExecutionProvider"])
+        ins = {i.name: i for i in self.session.get_inputs()}
+        outs = {o.name: o for o in self.session.get_outputs()}
+        if "obs" not in ins or "actions" not in outs:
+            raise ValueError(f"{meta.onnx_path}: expected input 'obs' and output 'actions', got "
+                             f"{sorted(ins)} -> {sorted(outs)}")
+        width = ins["obs"].shape[-1]
+        if isinstance(width, int) and width != meta.obs_size:
+            raise ValueError(f"{meta.onnx_path}: obs width {width} != metadata {meta.obs_size}")
+        self.meta = meta
+        self._in = np.zeros((1, meta.obs_size), np.float32)
+        self.prev_actions = np.zeros(12, np.float32)
+        self.target = meta.default_pose.copy()
+
+    def act(self, obs: np.ndarray) -> np.ndarray:
+        """Raw network output (12,) float32 for one observation (49,)."""
+        self._in[0] = obs
+        out = self.session.run(["actions"], {"obs": self._in})[0]
+        a = np.asarray(out, np.float32).reshape(-1)
+        if a.shape != (12,):
+            raise ValueError(f"policy output has shape {np.shape(out)}, expected (1, 12)")
+        return a
+
+    def reset(self, q: np.ndarray) -> None:
+        self.target = np.asarray(q, dtype=float).copy()
+        self.prev_actions = np.zeros(12, np.float32)
+
+    def step(self, actions: np.ndarray) -> np.ndarray:
+        """Apply raw ``actions`` to the target (delta_target rule); returns the new target."""
+        m = self.meta
+        a = np.clip(actions.astype(float), -m.action_clip, m.action_clip)
+        self.target = np.clip(self.target + m.action_scale * a, m.soft_lower, m.soft_upper)
+        self.prev_actions = actions.astype(np.float32)
+        return self.target

@@ -1,0 +1,545 @@
+"""The calibration state machine: what the robot is told to do at every 50 Hz tick.
+
+States and their exits (every transition is reported with its cause)::
+
+    PASSIVE   damping (kp 0). -> STAND after ``passive_s`` (legs given on the command line)
+              or on L2+A (joystick mode).
+    STAND     timed interpolation from the joints at entry to the policy's default pose with the
+              stand gains, then a settle. -> SOLVE if a leg was just lowered; -> TRIPOD(leg) if
+              a leg is queued (or its joystick combo fired); -> SIT when nothing is left on
+              the command line. Timeout: pose not reached -> DAMP.
+    TRIPOD    the ONNX policy with the leg's lift command; the leg's motors follow the lift
+              schedule (shift, lift, hold). -> CALIBRATE when the excitation begins.
+              The lifted leg must track its targets by the end of hold, else abort -> LOWER.
+    CALIBRATE the excitation plan on the lifted leg; its span is the recording window of SOLVE.
+              -> LOWER when it ends; a failed foot IMU aborts -> LOWER (no result).
+    LOWER     the schedule's lower phase, then ``lower_settle_s`` of the policy alone.
+              -> STAND.
+    SOLVE     stand hold while the solver runs on a worker (never in the loop). -> REPORT.
+              Timeout ``solve_timeout_s`` -> REPORT with the error.
+    REPORT    the outcome is published (once). -> TRIPOD(next leg), or STAND (joystick mode),
+              or SIT.
+    SIT       interpolation to the lying pose, then damping. -> DONE.
+    DAMP      kp 0, kd ``damp_kd`` on every joint. Final after a fault; after L2+B in joystick
+              mode, L2+A stands up again.
+    DONE      damping; the loop exits.
+
+L2+B (combo "damp") and a stop request (combo "stop": Ctrl-C) go to DAMP from every state
+within the tick they are seen. Any supervisor fault (passed in
+``TickInput.fault``) or a non-finite observation / action goes to DAMP in the same tick.
+
+Pure logic: inputs arrive as :class:`TickInput`, the policy and the solver are injected, the
+output is the tick's :class:`Command`. Times are tick counts x ``dt`` (deterministic).
+Joint vectors in SDK order (FR, FL, RR, RL), rad, rad/s, N m/rad, N m s/rad.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calib.joints import LIE_POSE_LEG, check_leg, full_pose, sdk_indices
+from deploy.observation import build_observation, projected_gravity
+from deploy.supervisor import DAMP_KD, SafetySupervisor
+
+__all__ = ["Command", "Session", "SessionConfig", "State", "TickInput"]
+
+log = logging.getLogger(__name__)
+
+
+class State(enum.Enum):
+    PASSIVE = "PASSIVE"
+    STAND = "STAND"
+    TRIPOD = "TRIPOD"
+    CALIBRATE = "CALIBRATE"
+    LOWER = "LOWER"
+    SOLVE = "SOLVE"
+    REPORT = "REPORT"
+    SIT = "SIT"
+    DAMP = "DAMP"
+    DONE = "DONE"
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """Durations (s), gains (N m/rad, N m s/rad), tolerances (rad) of the state machine."""
+
+    passive_s: float = 0.5
+    stand_s: float = 2.0
+    stand_settle_s: float = 1.0
+    stand_kp: float = 60.0
+    stand_kd: float = 5.0
+    stand_tolerance: float = 0.25
+    stand_timeout_s: float = 3.0
+    track_tolerance: float = 0.35
+    lower_settle_s: float = 0.5
+    tripod_margin_s: float = 1.0
+    solve_timeout_s: float = 180.0
+    sit_s: float = 2.0
+    sit_hold_s: float = 0.5
+    damp_kd: float = DAMP_KD
+
+
+@dataclass
+class TickInput:
+    """One tick's inputs. q, dq (12,) SDK order; quat (w, x, y, z) body -> world; gyro (3,)
+    rad/s body frame; combos: names of the joystick combos fired this tick ("damp", "stand",
+    "calibrate_FL", ...); fault: supervisor fault cause; imu_errors: leg -> error text;
+    window_mark: opaque marker of the newest LowState (what SOLVE's window is made of)."""
+
+    q: np.ndarray | None
+    dq: np.ndarray | None = None
+    quat: np.ndarray | None = None
+    gyro: np.ndarray | None = None
+    combos: Sequence[str] = ()
+    fault: str | None = None
+    imu_errors: dict[str, str] = field(default_factory=dict)
+    window_mark: object = None
+
+
+@dataclass
+class Command:
+    """The LowCmd_ content of one tick (12,) each, and what produced it."""
+
+    q: np.ndarray
+    dq: np.ndarray
+    kp: np.ndarray
+    kd: np.ndarray
+    tau: np.ndarray
+    source: str = ""
+    obs: np.ndarray | None = None
+    actions: np.ndarray | None = None
+
+
+@dataclass
+class LegOutcome:
+    """What happened to one leg's calibration (filled by the solve job or by an abort)."""
+
+    leg: str
+    ok: bool = False
+    error: str | None = None
+    payload: object = None  # the solve job's result object (deploy.solve.SolveOutcome)
+
+
+class Session:
+    """The state machine (module docstring). ``step(inp) -> Command`` once per tick.
+
+    policy: a :class:`deploy.policy.PolicyRunner` (or anything with ``meta``, ``act``,
+    ``reset``, ``step``, ``prev_actions``, ``target``). start_solve(leg, window) -> job with
+    ``done()`` and ``outcome()``; window is (mark at CALIBRATE start, mark at its end).
+    legs: calibrated in turn, from the command line; joystick: wait for combos instead.
+    on_transition(old, new, cause) and on_report(LegOutcome) are called from ``step``.
+    available_legs: legs with a foot IMU (joystick combos for others are ignored).
+    """
+
+    def __init__(self, policy, supervisor: SafetySupervisor, dt: float,
+                 start_solve: Callable, legs: Sequence[str] = (), joystick: bool = False,
+                 config: SessionConfig | None = None,
+                 on_transition: Callable[[State, State, str], None] | None = None,
+                 on_report: Callable[[LegOutcome], None] | None = None,
+                 available_legs: Sequence[str] | None = None):
+        self.policy = policy
+        self.meta = policy.meta
+        self.sup = supervisor
+        self.dt = float(dt)
+        self.start_solve = start_solve
+        self.queue: deque[str] = deque(check_leg(leg) for leg in legs)
+        self.joystick = bool(joystick)
+        self.available_legs = None if available_legs is None else set(available_legs)
+        self.cfg = config or SessionConfig()
+        self.on_transition = on_transition
+        self.on_report = on_report
+        self.state = State.PASSIVE
+        self.k = 0  # ticks since start
+        self._k_entry = 0
+        self.leg: str | None = None
+        self.fault: str | None = None  # the cause of a final DAMP
+        self.user_damp = False
+        self.outcomes: list[LegOutcome] = []
+        self._prev_target: np.ndarray | None = None
+        self._interp_from: np.ndarray | None = None
+        self._interp_to: np.ndarray | None = None
+        self._q_start: np.ndarray | None = None
+        self._window_start = None
+        self._window_end = None
+        self._pending_solve: str | None = None
+        self._abort: str | None = None
+        self._job = None
+        self._k_lift = 0
+        self._abort_from: np.ndarray | None = None
+        self._abort_to: np.ndarray | None = None
+        self._requested: str | None = None
+        self._current: LegOutcome | None = None
+        self.lie_pose = full_pose(LIE_POSE_LEG, order="sdk")
+        self.phase = ""
+        self.last_command: Command | None = None
+        n = 12
+        self._zeros = np.zeros(n)
+        self._damp_kd = np.full(n, self.cfg.damp_kd)
+
+    # ------------------------------------------------------------------ helpers
+    @property
+    def t_state(self) -> float:
+        """Seconds since the current state was entered."""
+        return (self.k - self._k_entry) * self.dt
+
+    @property
+    def finished(self) -> bool:
+        return self.state is State.DONE or (
+            self.state is State.DAMP and not (self.user_damp and self.joystick))
+
+    def _go(self, new: State, cause: str) -> None:
+        old = self.state
+        self.state = new
+        self._k_entry = self.k
+        if self.on_transition is not None:
+            self.on_transition(old, new, cause)
+
+    def _damp_command(self, source: str = "damp") -> Command:
+        # q = current target is irrelevant with kp = 0; send zeros-of-PD: q sentinel not needed.
+        return Command(self._zeros.copy(), self._zeros.copy(), self._zeros.copy(),
+                       self._damp_kd.copy(), self._zeros.copy(), source)
+
+    def _pd(self, q_des, kp: float, kd: float, source: str) -> Command:
+        q_des = self.sup.limit(np.asarray(q_des, dtype=float), self._prev_target)
+        self._prev_target = q_des
+        return Command(q_des, self._zeros.copy(), np.full(12, kp), np.full(12, kd),
+                       self._zeros.copy(), source)
+
+    def _start_interp(self, q_now, q_to) -> None:
+        self._interp_from = np.asarray(q_now, dtype=float).copy()
+        self._interp_to = np.asarray(q_to, dtype=float).copy()
+
+    def _interp(self, duration: float) -> np.ndarray:
+        x = min(1.0, self.t_state / duration) if duration > 0 else 1.0
+        w = x**3 * (10 - 15 * x + 6 * x**2)
+        return self._interp_from + w * (self._interp_to - self._interp_from)
+
+    def enter_damp(self, cause: str, user: bool = False) -> None:
+        if self.state is State.DAMP and not (self.user_damp and not user):
+            return
+        self.user_damp = user
+        if not user:
+            self.fault = cause
+        if self._current is not None and not self._current.ok and self._current.error is None:
+            self._current.error = f"aborted: {cause}"
+        self._go(State.DAMP, cause)
+
+    # ------------------------------------------------------------------ the tick
+    def step(self, inp: TickInput) -> Command:
+        cmd = self._step(inp)
+        self.k += 1
+        self.last_command = cmd
+        return cmd
+
+    def _step(self, inp: TickInput) -> Command:
+        combos = set(inp.combos)
+        if "damp" in combos and not (self.state is State.DAMP and self.user_damp):
+            self.enter_damp("operator: L2+B", user=True)
+            return self._damp_command()
+        if "stop" in combos and not (self.state is State.DAMP and self.user_damp):
+            self.enter_damp("operator: stop (Ctrl-C)", user=True)
+            return self._damp_command()
+        if inp.fault is not None and (self.state not in (State.DAMP, State.DONE)
+                                      or (self.state is State.DAMP and self.user_damp)):
+            self.enter_damp(inp.fault)  # a fault makes even an operator's DAMP final
+            return self._damp_command()
+        if self.state is State.DAMP:
+            if (self.user_damp and self.joystick and "stand" in combos
+                    and inp.q is not None):
+                self.user_damp = False
+                self._prev_target = np.asarray(inp.q, dtype=float).copy()
+                self._start_interp(inp.q, self.meta.default_pose)
+                self._go(State.STAND, "operator: L2+A")
+            else:
+                return self._damp_command()
+        if self.state is State.DONE:
+            return self._damp_command("done")
+        if inp.q is None:  # nothing received yet: damping is all we can do
+            return self._damp_command("passive")
+        for name in combos:
+            if name.startswith("calibrate_") and self.state is State.STAND:
+                leg = name.split("_", 1)[1]
+                if self.available_legs is None or leg in self.available_legs:
+                    self._requested = leg
+                else:
+                    log.warning("calibrate %s ignored: no foot IMU configured for %s (give "
+                                "--imu %s=PORT)", leg, leg, leg)
+        for leg, err in inp.imu_errors.items():
+            if (self.leg == leg and self.state in (State.TRIPOD, State.CALIBRATE)
+                    and not self._abort):
+                self._abort_leg(f"foot IMU {leg} failed: {err}")
+        handler = getattr(self, f"_{self.state.value.lower()}")
+        return handler(inp, combos)
+
+    # ------------------------------------------------------------------ states
+    def _passive(self, inp: TickInput, combos) -> Command:
+        go = ("stand" in combos) if self.joystick else (self.t_state >= self.cfg.passive_s
+                                                        and bool(self.queue))
+        if not self.joystick and not self.queue:
+            self._go(State.DONE, "nothing to calibrate")
+            return self._damp_command("done")
+        if go:
+            self._prev_target = np.asarray(inp.q, dtype=float).copy()
+            self._start_interp(inp.q, self.meta.default_pose)
+            self._go(State.STAND, "operator: L2+A" if self.joystick else "start")
+            return self._stand(inp, combos)
+        return self._damp_command("passive")
+
+    def _stand(self, inp: TickInput, combos) -> Command:
+        c = self.cfg
+        cmd = self._pd(self._interp(c.stand_s), c.stand_kp, c.stand_kd, "stand")
+        if self.t_state < c.stand_s + c.stand_settle_s:
+            return cmd
+        err = float(np.max(np.abs(np.asarray(inp.q) - self.meta.default_pose)))
+        if err > c.stand_tolerance:
+            if self.t_state >= c.stand_s + c.stand_settle_s + c.stand_timeout_s:
+                self.enter_damp(f"STAND timeout: pose error {err:.2f} rad > "
+                                f"{c.stand_tolerance} rad")
+                return self._damp_command()
+            return cmd
+        if self._pending_solve is not None:
+            self._start_solve()
+            return cmd
+        if self._current is not None:  # an aborted leg: report it, nothing to solve
+            self._go(State.REPORT, f"calibration of {self._current.leg} aborted")
+            return cmd
+        leg = None
+        if self.queue:
+            leg = self.queue.popleft()
+            cause = f"next leg {leg}"
+        elif self.joystick:
+            leg, self._requested = self._requested, None
+            cause = f"operator: calibrate {leg}"
+        else:
+            self._start_interp(inp.q, self.lie_pose)
+            self._go(State.SIT, "all legs done")
+            return cmd
+        if leg is not None:
+            self._start_tripod(leg, inp, cause)
+        return cmd
+
+    def _start_tripod(self, leg: str, inp: TickInput, cause: str) -> None:
+        self.leg = leg
+        self._current = LegOutcome(leg)
+        self.outcomes.append(self._current)
+        self._q_start = None
+        self._abort = None
+        self._window_start = self._window_end = None
+        self.policy.reset(inp.q)
+        self.phase = ""
+        self._k_lift = self.k + 1  # the lift command is given at TRIPOD's first tick
+        self._go(State.TRIPOD, cause)
+
+    def _schedule_target(self, lift_leg: str, t_lift: float, q: np.ndarray):
+        """The lift schedule's target of ``lift_leg`` at ``t_lift`` (latching q_start)."""
+        sched = self.meta.schedule
+        idx = sdk_indices(lift_leg)
+        if self._q_start is None and sched.phase(lift_leg, t_lift) != "shift":
+            self._q_start = q[idx].copy()  # latched at the first tick of lift
+        q_start = self._q_start if self._q_start is not None else q[idx]
+        return sched.targets(lift_leg, t_lift, q_start)
+
+    def _policy_command(self, inp: TickInput, lift_leg: str | None, leg_target) -> Command:
+        """Policy tick: observation, ONNX, delta target; the lifted leg from ``leg_target``
+        (a :class:`deploy.lift_schedule.LegTarget`, or None)."""
+        m = self.meta
+        q = np.asarray(inp.q, dtype=float)
+        phase = leg_target.phase if leg_target is not None else ""
+        lift_on = lift_leg is not None and phase not in ("", "done")
+        signals = {
+            "base_lin_vel": np.zeros(3),
+            "base_ang_vel": inp.gyro if inp.gyro is not None else np.zeros(3),
+            "projected_gravity": projected_gravity(inp.quat if inp.quat is not None
+                                                   else np.array([1.0, 0, 0, 0])),
+            "joint_pos": q,
+            "joint_vel": inp.dq if inp.dq is not None else np.zeros(12),
+            "previous_actions": self.policy.prev_actions,
+            "commands": np.zeros(3),
+            "lift_command": m.lift_value(lift_leg if lift_on else None),
+        }
+        obs = build_observation(m.observation, signals)
+        bad = SafetySupervisor.check_finite("observation", obs)
+        actions = None
+        if bad is None:
+            actions = self.policy.act(obs)
+            bad = SafetySupervisor.check_finite("policy action", actions)
+        if bad is not None:
+            self.enter_damp(bad)
+            cmd = self._damp_command()
+            cmd.obs, cmd.actions = obs, actions
+            return cmd
+        target = self.policy.step(actions)
+        if phase == "done" and self.phase not in ("done", ""):
+            # Hand-back (as in training, policy_train/env.py): the policy's target of the leg
+            # restarts from where the leg is; what it accumulated meanwhile was never applied.
+            self.policy.target[sdk_indices(lift_leg)] = q[sdk_indices(lift_leg)]
+        target = self.policy.target.copy()
+        dq = np.zeros(12)
+        kp, kd = m.kp.copy(), m.kd.copy()
+        if leg_target is not None and leg_target.q_des is not None:
+            idx = sdk_indices(lift_leg)
+            target[idx] = leg_target.q_des
+            dq[idx] = leg_target.dq_des
+            kp[idx] = leg_target.kp
+            kd[idx] = leg_target.kd
+        q_des = self.sup.limit(target, self._prev_target)
+        self._prev_target = q_des
+        self.phase = phase
+        return Command(q_des, dq, kp, kd, self._zeros.copy(), f"policy:{phase or 'stand'}",
+                       obs, actions)
+
+    def _lift_time(self) -> float:
+        return (self.k - self._k_lift) * self.dt
+
+    def _tripod(self, inp: TickInput, combos) -> Command:
+        if self._abort:
+            return self._lower_now(inp)
+        sched = self.meta.schedule
+        t = self._lift_time()
+        cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp.q))
+        if self.state is State.DAMP:
+            return cmd
+        if self.phase == "excite":
+            idx = sdk_indices(self.leg)
+            err = float(np.max(np.abs(np.asarray(inp.q)[idx] - sched.plan(self.leg).q0)))
+            if err > self.cfg.track_tolerance:
+                self._abort_leg(f"lifted leg off its target by {err:.2f} rad at the end of hold")
+                return cmd
+            self._window_start = inp.window_mark
+            self._go(State.CALIBRATE, "lifted; excitation starts")
+        elif t > sched.durations(self.leg)[:3].sum() + self.cfg.tripod_margin_s:
+            self.enter_damp("TRIPOD timeout")
+            return self._damp_command()
+        return cmd
+
+    def _calibrate(self, inp: TickInput, combos) -> Command:
+        if self._abort:
+            return self._lower_now(inp)
+        t = self._lift_time()
+        cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp.q))
+        if self.state is State.DAMP:
+            return cmd
+        if self.phase != "excite":
+            self._window_end = inp.window_mark
+            self._pending_solve = self.leg
+            self._go(State.LOWER, "excitation done")
+        elif self.t_state > self.meta.schedule.plan(self.leg).duration + self.cfg.tripod_margin_s:
+            self.enter_damp("CALIBRATE timeout")
+            return self._damp_command()
+        return cmd
+
+    def _abort_leg(self, why: str) -> None:
+        self._abort = why
+        if self._current is not None:
+            self._current.error = why
+        self._pending_solve = None
+        log.error("calibration of %s aborted: %s", self.leg, why)
+
+    def _lower_now(self, inp: TickInput) -> Command:
+        """Abort: bring the leg from its last target back to where it stood (or, still in
+        shift, just drop the lift command), with the policy balancing the body."""
+        idx = sdk_indices(self.leg)
+        self._abort_from = (self._prev_target[idx].copy() if self._prev_target is not None
+                            else np.asarray(inp.q, dtype=float)[idx])
+        self._abort_to = self._q_start
+        self._go(State.LOWER, f"abort: {self._abort}")
+        return self._lower(inp, ())
+
+    def _abort_target(self):
+        from deploy.lift_schedule import LegTarget
+
+        sched = self.meta.schedule
+        if self._abort_to is None:
+            return LegTarget("done", None, None, sched.kp, sched.kd)
+        dur = 1.5 * sched.lower
+        x = min(1.0, self.t_state / dur)
+        w = x**3 * (10 - 15 * x + 6 * x**2)
+        dw = 30 * x**2 * (1 - x) ** 2 / dur
+        q = self._abort_from + w * (self._abort_to - self._abort_from)
+        dq = dw * (self._abort_to - self._abort_from)
+        return LegTarget("lower" if x < 1 else "done", q, dq if x < 1 else None, sched.kp,
+                         sched.kd) if x < 1 else LegTarget("done", None, None, sched.kp,
+                                                           sched.kd)
+
+    def _lower(self, inp: TickInput, combos) -> Command:
+        sched = self.meta.schedule
+        if self._abort:
+            cmd = self._policy_command(inp, self.leg, self._abort_target())
+            end = 1.5 * sched.lower if self._abort_to is not None else 0.0
+            done = self.t_state >= end + self.cfg.lower_settle_s
+        else:
+            t = self._lift_time()
+            cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp.q))
+            done = t >= sched.total(self.leg) + self.cfg.lower_settle_s
+        if self.state is State.DAMP:
+            return cmd
+        if done:
+            q_from = self._bumpless(inp.q, cmd)
+            self._prev_target = q_from.copy()
+            self._start_interp(q_from, self.meta.default_pose)
+            self._go(State.STAND, "foot down")
+        elif self.t_state > 2 * sched.lower + sched.total(self.leg) + 5.0:
+            self.enter_damp("LOWER timeout")
+            return self._damp_command()
+        return cmd
+
+    def _bumpless(self, q, cmd: Command) -> np.ndarray:
+        """Stand-gain target that gives the same PD torque as ``cmd`` at joints ``q``: the
+        policy's stiffness is a third of the stand's, so restarting the stand interpolation
+        from its targets would triple every holding torque in one tick and jolt the body."""
+        q = np.asarray(q, dtype=float)
+        return q + (cmd.kp / self.cfg.stand_kp) * (cmd.q - q)
+
+    def _start_solve(self) -> None:
+        leg, self._pending_solve = self._pending_solve, None
+        self._job = self.start_solve(leg, (self._window_start, self._window_end))
+        self._go(State.SOLVE, f"solving {leg} on a worker")
+
+    def _hold(self) -> Command:
+        c = self.cfg
+        return self._pd(self.meta.default_pose, c.stand_kp, c.stand_kd, "stand")
+
+    def _solve(self, inp: TickInput, combos) -> Command:
+        cmd = self._hold()
+        job = self._job
+        if job.done():
+            out = job.outcome()
+            self._current.payload = out
+            self._current.ok = bool(getattr(out, "accepted", False))
+            self._current.error = getattr(out, "error", None)
+            self._go(State.REPORT, "solver finished")
+        elif self.t_state > self.cfg.solve_timeout_s:
+            self._current.error = f"solver timed out after {self.cfg.solve_timeout_s:.0f} s"
+            self._go(State.REPORT, "solver timeout")
+        return cmd
+
+    def _report(self, inp: TickInput, combos) -> Command:
+        cmd = self._hold()
+        if self.on_report is not None and self._current is not None:
+            self.on_report(self._current)
+        self._current = None
+        self.leg = None
+        if self.queue:
+            leg = self.queue.popleft()
+            self._start_tripod(leg, inp, f"next leg {leg}")
+        elif self.joystick:
+            self._prev_target = cmd.q.copy()
+            self._start_interp(inp.q, self.meta.default_pose)
+            self._go(State.STAND, "report done; waiting for the joystick")
+        else:
+            self._start_interp(inp.q, self.lie_pose)
+            self._go(State.SIT, "all legs done")
+        return cmd
+
+    def _sit(self, inp: TickInput, combos) -> Command:
+        c = self.cfg
+        cmd = self._pd(self._interp(c.sit_s), c.stand_kp, c.stand_kd, "sit")
+        if self.t_state >= c.sit_s + c.sit_hold_s:
+            self._go(State.DONE, "sat down")
+        return cmd

@@ -1,0 +1,93 @@
+"""Policy files on board: metadata validation, ONNX runner, delta targets, observation layout."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from calib.joints import SDK_JOINT_NAMES
+from deploy.hold_policy import hold_policy_metadata, write_hold_policy
+from deploy.observation import build_observation, projected_gravity
+from deploy.policy import PolicyMeta, PolicyRunner, default_policy_path
+
+pytest.importorskip("onnx")
+
+
+@pytest.fixture(scope="module")
+def policy_json(tmp_path_factory):
+    return write_hold_policy(tmp_path_factory.mktemp("pol"), action_value=0.5)
+
+
+def test_load_and_run(policy_json):
+    meta = PolicyMeta.load(policy_json)
+    assert meta.control_dt == 0.02 and meta.obs_size == 49
+    assert meta.lift_value("FL") == 1.0 and meta.lift_value(None) == 0.0
+    r = PolicyRunner(meta)
+    a = r.act(np.zeros(49, np.float32))
+    np.testing.assert_allclose(a, 0.5)
+    r.reset(meta.default_pose)
+    t = r.step(a)  # target = prev + 0.25 * clip(0.5)
+    np.testing.assert_allclose(t, np.clip(meta.default_pose + 0.125, meta.soft_lower,
+                                          meta.soft_upper))
+    for _ in range(200):
+        t = r.step(a)
+    np.testing.assert_allclose(t, meta.soft_upper)  # clamped to the soft limits
+    np.testing.assert_allclose(r.prev_actions, 0.5)
+
+
+@pytest.mark.parametrize("mutate, msg", [
+    (lambda d: d.update(joint_order=list(reversed(SDK_JOINT_NAMES))), "joint_order"),
+    (lambda d: d.update(schema_version=2), "schema_version"),
+    (lambda d: d.update(kp=[1.0] * 11), "kp"),
+    (lambda d: d["action"].update(mode="position"), "action.mode"),
+    (lambda d: d["observation"].update(size=50), "observation.size"),
+    (lambda d: d["lift_command"].pop("RR"), "RR"),
+    (lambda d: d["soft_limits"].update(lower=[2.0] * 12), "soft_limits"),
+    (lambda d: d["lift_schedule"].update(typo=1), "lift_schedule"),
+])
+def test_bad_metadata_is_refused_with_a_reason(tmp_path, mutate, msg):
+    d = hold_policy_metadata()
+    mutate(d)
+    p = tmp_path / "p.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(ValueError, match=msg):
+        PolicyMeta.load(p)
+
+
+def test_missing_network_and_newest_policy(tmp_path):
+    old = write_hold_policy(tmp_path, name="old")
+    new = write_hold_policy(tmp_path, name="new")
+    d = json.loads(new.read_text())
+    d["created_utc"] = "2030-01-01T00:00:00+00:00"
+    new.write_text(json.dumps(d))
+    os.utime(old, (1, 1))
+    assert default_policy_path([tmp_path]) == new
+    with pytest.raises(ValueError, match="no policy JSON"):
+        default_policy_path([tmp_path / "empty"])
+    (tmp_path / "new.onnx").unlink()
+    with pytest.raises(ValueError, match="not found"):
+        PolicyRunner(PolicyMeta.load(new))
+
+
+def test_observation_from_metadata_terms(policy_json):
+    """The vector follows the metadata: order, offsets, scales, zero-source terms."""
+    meta = PolicyMeta.load(policy_json)
+    rng = np.random.default_rng(1)
+    q = meta.default_pose + rng.normal(0, 0.1, 12)
+    dq = rng.normal(0, 1, 12)
+    gyro = np.array([0.1, -0.2, 0.3])
+    quat = np.array([np.cos(0.1), np.sin(0.1), 0, 0])
+    prev = rng.normal(0, 1, 12)
+    obs = build_observation(meta.observation, {
+        "base_ang_vel": gyro, "projected_gravity": projected_gravity(quat), "joint_pos": q,
+        "joint_vel": dq, "previous_actions": prev, "commands": np.zeros(3),
+        "lift_command": meta.lift_value("RL")})
+    terms = {t["name"]: t for t in meta.observation["terms"]}
+    np.testing.assert_allclose(obs[0:3], 0.0)  # base_lin_vel source "zero"
+    np.testing.assert_allclose(obs[3:6], gyro * terms["base_ang_vel"]["scale"], rtol=1e-6)
+    np.testing.assert_allclose(obs[6:9], [0, -np.sin(0.2), -np.cos(0.2)], atol=1e-6)
+    np.testing.assert_allclose(obs[9:21], q - meta.default_pose, atol=1e-6)
+    np.testing.assert_allclose(obs[21:33], dq * terms["joint_vel"]["scale"], rtol=1e-5)
+    np.testing.assert_allclose(obs[33:45], prev, rtol=1e-6)
+    assert obs[48] == pytest.approx(3.0 * terms["lift_command"]["scale"])

@@ -1,0 +1,217 @@
+"""The calibration state machine on fake inputs: a robot that follows its commands exactly."""
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from calib.joints import LIE_POSE_LEG, full_pose, sdk_indices
+from deploy.lift_schedule import LiftSchedule
+from deploy.policy import PolicyMeta, PolicyRunner
+from deploy.session import Session, SessionConfig, State, TickInput
+from deploy.supervisor import SafetySupervisor, SupervisorConfig
+
+pytest.importorskip("onnx")
+
+CFG = SessionConfig(passive_s=0.1, stand_s=0.4, stand_settle_s=0.2, sit_s=0.2, sit_hold_s=0.1)
+
+
+@pytest.fixture(scope="module")
+def meta_paths(tmp_path_factory):
+    from deploy.hold_policy import write_hold_policy
+
+    d = tmp_path_factory.mktemp("pol")
+    sched = LiftSchedule(shift=0.2, lift=0.2, hold=0.2, lower=0.2, periods=1)
+    return (write_hold_policy(d, "hold", schedule=sched),
+            write_hold_policy(d, "nan", action_value=float("nan"), schedule=sched))
+
+
+@dataclass
+class FakeJob:
+    accepted: bool = True
+    error: str | None = None
+    polls: int = 0
+
+    def done(self):
+        self.polls += 1
+        return self.polls > 3  # the worker takes a few ticks
+
+    def outcome(self):
+        return self
+
+
+class Rig:
+    """A session plus a perfect robot: q follows the commanded targets one tick later."""
+
+    def __init__(self, meta_path, legs=("FL",), joystick=False):
+        meta = PolicyMeta.load(meta_path)
+        for leg in legs or ("FL",):
+            meta.schedule.plan(leg)
+        self.meta = meta
+        sup = SafetySupervisor(SupervisorConfig(), meta.soft_lower, meta.soft_upper, 0.02)
+        self.transitions = []
+        self.reports = []
+        self.solves = []
+        self.s = Session(PolicyRunner(meta), sup, 0.02, self._solve, legs=legs,
+                         joystick=joystick, config=CFG,
+                         on_transition=lambda a, b, c: self.transitions.append((a, b, c)),
+                         on_report=self.reports.append)
+        self.q = full_pose(LIE_POSE_LEG, order="sdk")
+        self.k = 0
+
+    def _solve(self, leg, window):
+        self.solves.append((leg, window))
+        return FakeJob()
+
+    def tick(self, **kw):
+        inp = TickInput(q=self.q.copy(), dq=np.zeros(12), quat=np.array([1.0, 0, 0, 0]),
+                        gyro=np.zeros(3), window_mark=self.k, **kw)
+        cmd = self.s.step(inp)
+        self.k += 1
+        if cmd.kp.max() > 0:
+            self.q = cmd.q.copy()
+        return cmd
+
+    def run_until(self, state, max_ticks=5000):
+        for _ in range(max_ticks):
+            if self.s.state is state:
+                return
+            self.tick()
+        raise AssertionError(f"never reached {state}; now {self.s.state}")
+
+    @property
+    def states(self):
+        return [b for _, b, _ in self.transitions]
+
+
+def test_full_calibration_sequence(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL",))
+    rig.run_until(State.DONE)
+    assert rig.states == [State.STAND, State.TRIPOD, State.CALIBRATE, State.LOWER, State.STAND,
+                          State.SOLVE, State.REPORT, State.SIT, State.DONE]
+    assert len(rig.solves) == 1
+    leg, (w0, w1) = rig.solves[0]
+    plan = rig.meta.schedule.plan("FL")
+    # The window spans the excitation: its length in ticks is the plan's duration.
+    assert leg == "FL" and abs((w1 - w0) * 0.02 - plan.duration) <= 0.021
+    assert len(rig.reports) == 1 and rig.reports[0].ok
+    assert rig.s.finished
+
+
+def test_lifted_leg_follows_schedule_with_its_gains(meta_paths):
+    rig = Rig(meta_paths[0], legs=("RR",))
+    rig.run_until(State.CALIBRATE)
+    cmd = rig.tick()
+    idx = sdk_indices("RR")
+    sched = rig.meta.schedule
+    assert cmd.kp[idx].tolist() == [sched.kp] * 3 and cmd.kd[idx].tolist() == [sched.kd] * 3
+    others = np.setdiff1d(np.arange(12), idx)
+    np.testing.assert_allclose(cmd.kp[others], rig.meta.kp[others])
+    np.testing.assert_allclose(cmd.q[idx], sched.plan("RR").q0, atol=0.05)
+    assert cmd.source == "policy:excite"
+
+
+def test_hand_back_restarts_the_policy_target_from_the_leg(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL",))
+    rig.run_until(State.LOWER)
+    idx = sdk_indices("FL")
+    while rig.s.phase != "done":
+        q_before = rig.q.copy()
+        cmd = rig.tick()
+    # first tick of "done": the leg's target is where the leg was, with the policy's gains
+    np.testing.assert_allclose(cmd.q[idx], q_before[idx])
+    np.testing.assert_allclose(cmd.kp[idx], rig.meta.kp[idx])
+    assert cmd.obs[-1] == 0.0  # lift_command back to none
+
+
+@pytest.mark.parametrize("state", [State.PASSIVE, State.STAND, State.TRIPOD, State.CALIBRATE,
+                                   State.LOWER, State.SOLVE])
+def test_l2_b_damps_within_the_tick_from_any_state(meta_paths, state):
+    rig = Rig(meta_paths[0], legs=("FL",))
+    rig.run_until(state)
+    cmd = rig.tick(combos=("damp",))
+    assert rig.s.state is State.DAMP
+    assert np.all(cmd.kp == 0) and np.all(cmd.kd > 0)
+    assert rig.transitions[-1][2] == "operator: L2+B"
+    assert rig.s.finished  # command-line mode: final
+    for _ in range(5):
+        assert np.all(rig.tick(combos=("stand",)).kp == 0)
+
+
+def test_supervisor_fault_damps_and_is_final(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL",))
+    rig.run_until(State.CALIBRATE)
+    cmd = rig.tick(fault="tilt 35.0 deg > 30 deg")
+    assert rig.s.state is State.DAMP and np.all(cmd.kp == 0)
+    assert rig.s.fault == "tilt 35.0 deg > 30 deg"
+    rig.tick()
+    assert rig.s.state is State.DAMP and rig.solves == []
+    assert rig.s.outcomes[0].error.startswith("aborted: tilt")
+
+
+def test_nan_policy_damps_on_its_first_tick(meta_paths):
+    rig = Rig(meta_paths[1], legs=("FL",))
+    rig.run_until(State.TRIPOD)
+    rig.tick()  # TRIPOD's first tick runs the policy
+    assert rig.s.state is State.DAMP
+    assert "non-finite policy action" in rig.s.fault
+    assert np.all(rig.s.last_command.kp == 0)
+
+
+def test_non_finite_observation_damps(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL",))
+    rig.run_until(State.TRIPOD)
+    inp = TickInput(q=rig.q.copy(), dq=np.zeros(12), quat=np.array([1.0, 0, 0, 0]),
+                    gyro=np.array([np.nan, 0, 0]))
+    cmd = rig.s.step(inp)
+    assert rig.s.state is State.DAMP and "non-finite observation" in rig.s.fault
+    assert np.all(cmd.kp == 0)
+
+
+def test_imu_failure_aborts_lowers_and_reports_without_solving(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL",))
+    rig.run_until(State.CALIBRATE)
+    for _ in range(10):
+        rig.tick()
+    rig.tick(imu_errors={"FL": "serial port /dev/pts/9 failed"})
+    assert rig.s.state is State.LOWER
+    rig.run_until(State.DONE)
+    assert rig.solves == []
+    assert State.REPORT in rig.states and State.SOLVE not in rig.states
+    assert not rig.reports[0].ok and "foot IMU FL failed" in rig.reports[0].error
+    # the leg came back down smoothly to where it stood before the lift
+    assert rig.s.fault is None
+
+
+def test_two_legs_in_turn(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FR", "RL"))
+    rig.run_until(State.DONE)
+    assert [leg for leg, _ in rig.solves] == ["FR", "RL"]
+    assert rig.states.count(State.TRIPOD) == 2 and rig.states.count(State.REPORT) == 2
+
+
+def test_joystick_mode(meta_paths):
+    rig = Rig(meta_paths[0], legs=(), joystick=True)
+    for _ in range(50):
+        rig.tick()
+    assert rig.s.state is State.PASSIVE  # waits for L2+A
+    rig.tick(combos=("calibrate_FL",))  # ignored outside STAND
+    rig.tick(combos=("stand",))
+    rig.run_until(State.STAND)
+    for _ in range(60):
+        rig.tick()
+    assert rig.s.state is State.STAND
+    rig.tick(combos=("calibrate_RR",))
+    rig.run_until(State.REPORT)
+    assert rig.s.leg == "RR"
+    rig.tick()
+    assert rig.s.state is State.STAND  # back to waiting, not sitting
+    rig.tick(combos=("damp",))
+    assert rig.s.state is State.DAMP and not rig.s.finished  # the operator can stand again
+    rig.tick(combos=("stand",))
+    assert rig.s.state is State.STAND
+    rig.tick(combos=("damp",))
+    rig.tick(fault="motor 3 over temperature (95 C >= 90 C)")  # a fault while damped by hand
+    assert rig.s.finished and rig.s.fault.startswith("motor 3")
+    rig.tick(combos=("stand",))
+    assert rig.s.state is State.DAMP  # final now

@@ -1,0 +1,68 @@
+"""Absolute-deadline ticking: compute time never drifts the schedule; missed deadlines skip."""
+
+import numpy as np
+import pytest
+
+from deploy.timing import DeadlineTicker, TickStats
+
+PERIOD_NS = 20_000_000
+
+
+class FakeClock:
+    """Monotonic ns clock; ``sleep`` advances it (with an overshoot, like a real sleep)."""
+
+    def __init__(self, overshoot_ns: int = 150_000):
+        self.t = 1_000_000_000
+        self.overshoot = overshoot_ns
+
+    def now(self) -> int:
+        return self.t
+
+    def sleep(self, s: float) -> None:
+        self.t += round(s * 1e9) + self.overshoot
+
+
+def test_deadlines_are_absolute_despite_compute_and_sleep_overshoot():
+    clk = FakeClock()
+    tk = DeadlineTicker(0.02, clock=clk.now, sleep=clk.sleep)
+    rng = np.random.default_rng(0)
+    k0, d0, s0 = tk.wait()
+    assert (k0, d0, s0) == (0, clk.t, clk.t)
+    for i in range(1, 500):
+        clk.t += int(rng.integers(1_000_000, 15_000_000))  # compute: 1..15 ms
+        k, deadline, start = tk.wait()
+        assert k == i
+        assert deadline == d0 + i * PERIOD_NS  # no accumulation of compute or overshoot
+        assert 0 <= start - deadline <= clk.overshoot
+    assert tk.missed == 0
+
+
+def test_overrun_skips_missed_deadlines_without_burst():
+    clk = FakeClock(overshoot_ns=0)
+    tk = DeadlineTicker(0.02, clock=clk.now, sleep=clk.sleep)
+    _, d0, _ = tk.wait()
+    clk.t += 75_000_000  # a 75 ms stall: deadlines 1, 2, 3 pass
+    k, deadline, start = tk.wait()
+    assert tk.missed == 2  # 1 and 2 skipped; 3 runs late
+    assert k == 3 and deadline == d0 + 3 * PERIOD_NS and start - deadline == 15_000_000
+    k, deadline, _ = tk.wait()
+    assert k == 4 and deadline == d0 + 4 * PERIOD_NS
+
+
+def test_tick_stats_summary():
+    st = TickStats(capacity=1000)
+    for i in range(1000):
+        st.add(i * 1e-6, 2e-3)
+    st.add(5e-3, 1e-2)  # wraps the ring; maxima cover the whole run
+    s = st.summary()
+    assert s.ticks == 1001 and s.late == 1
+    assert s.period_error_max == pytest.approx(5e-3)
+    assert s.compute_max == pytest.approx(1e-2)
+    assert s.period_error_p50 == pytest.approx(500.5e-6, rel=0.01)
+    assert len(s.lines()) == 3
+
+
+def test_empty_stats_and_bad_period():
+    assert TickStats(10).summary().ticks == 0
+    with pytest.raises(ValueError):
+        DeadlineTicker(0.0)

@@ -1,0 +1,296 @@
+"""Hardware-in-the-loop: the deploy program against the lockstep mock robot over real Zenoh
+loopback and real pty serial ports (deterministic: the mock advances one 20 ms quantum per
+LowCmd_, and the loop ticks on the LowState of the expected tick).
+
+Two robots: a hung-up Go2 (``base: fixed``) driven by the hold policy (the stand-in network of
+the exact file contract, ``deploy/hold_policy.py``), which runs everywhere; and the Go2 on the
+floor driven by the trained tripod policy from ``policies/``, skipped only while that file is
+missing. Short excitations (1 period) keep the suite fast; users get the policy's own plan.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco")
+pytest.importorskip("onnx")
+
+from calib.metrics import geodesic_error_deg
+from calib.result import CalibrationResult
+from deploy.hold_policy import write_hold_policy
+from deploy.lift_schedule import LiftSchedule
+from deploy.policy import PolicyMeta, default_policy_path
+from deploy.runtime import DeployConfig, DeployError, DeployRunner, ImuPort
+from deploy.session import SessionConfig, State
+from deploy.simulate import free_tcp_port, truth_tuples
+from hw.mock.config import MockConfig
+from hw.mock.robot import MockRobot
+
+FAST = SessionConfig(passive_s=0.2, stand_s=1.0, stand_settle_s=0.4)
+ROT_TOL_DEG = 0.5
+OFFSET_TOL_S = 1e-3
+
+
+@pytest.fixture(scope="module")
+def policies(tmp_path_factory):
+    d = tmp_path_factory.mktemp("policies")
+    sched = LiftSchedule(periods=1)
+    return {"hold": write_hold_policy(d, "hold", schedule=sched),
+            "nan": write_hold_policy(d, "nan", action_value=float("nan"), schedule=sched)}
+
+
+def start_mock(seed: int, **extra) -> MockRobot:
+    cfg = {"listen": [f"tcp/127.0.0.1:{free_tcp_port()}"], "clock": "lockstep", "seed": seed,
+           "base": "fixed", **extra}
+    robot = MockRobot(MockConfig.from_dict(cfg))
+    robot.start()
+    return robot
+
+
+def deploy(robot: MockRobot, policy_json, legs, out, on_tick=None, session=FAST, periods=None):
+    meta = PolicyMeta.load(policy_json)
+    if periods is not None:
+        from dataclasses import replace
+
+        meta.schedule = replace(meta.schedule, periods=periods)
+    cfg = DeployConfig(
+        legs=list(legs), out_dir=out, connect=list(robot.config.listen),
+        imus=[ImuPort(leg, port) for leg, port in robot.imu_ports.items()], clock="lockstep",
+        record_seconds=150.0, session=session, truth=truth_tuples(robot.truth()))
+    return DeployRunner(cfg, meta, on_tick=on_tick).run()
+
+
+def check_against_truth(result, robot, out, legs):
+    truth = truth_tuples(robot.truth())
+    assert [o.leg for o in result.outcomes] == list(legs)
+    for o in result.outcomes:
+        assert o.ok, f"{o.leg}: {o.error}"
+        res = CalibrationResult.read(out / f"{o.leg}.json")
+        assert res.accepted
+        r_true, t_true = truth[o.leg]
+        rot = geodesic_error_deg(res.rotation_matrix, r_true)
+        dt = abs(res.time_offset_s - t_true)
+        assert rot < ROT_TOL_DEG, f"{o.leg}: rotation error {rot:.3f} deg"
+        assert dt < OFFSET_TOL_S, f"{o.leg}: offset error {dt * 1e3:.3f} ms"
+        assert (out / f"{o.leg}.png").stat().st_size > 10_000
+
+
+def test_hung_robot_all_legs_recover_mounting_and_every_lowstate_recorded(policies, tmp_path):
+    robot = start_mock(seed=11)
+    try:
+        result = deploy(robot, policies["hold"], ["FL", "FR", "RL", "RR"], tmp_path)
+        published = robot.lowstates_published
+    finally:
+        robot.stop()
+    assert result.fault is None and result.final_state is State.DONE
+    check_against_truth(result, robot, tmp_path, ["FL", "FR", "RL", "RR"])
+    # The session file holds every LowState the robot sent (500 Hz, not just 1 in 10).
+    from hw.mcap_io import read_mcap
+
+    snap = read_mcap(result.mcap_path)
+    ticks = np.unique(snap.lowstate["tick"])
+    # (the last command's quantum is published after the loop has stopped reading: 10 states)
+    assert len(ticks) >= published - robot.lowstates_repeated - 10
+    assert np.all(np.diff(ticks) == 2)  # 2 ms apart, none missing
+    assert len(snap.imu["FL"]) > 1000 and len(snap.lowcmd) == result.ticks
+    events = [text for _, _, text in snap.events_text()]
+    assert any("CALIBRATE -> LOWER" in e for e in events)
+
+
+def test_cli_sim_with_garbage_on_the_serial_line(policies, tmp_path):
+    """`a2i-deploy --leg FR --sim` end to end, with random bytes between the IMU frames."""
+    from deploy.cli import main
+
+    cfg = tmp_path / "mock.json"
+    cfg.write_text(json.dumps({"base": "fixed", "foot_imus": {
+        "FR": {"garbage_prob": 0.3, "garbage_max_bytes": 40}}}))
+    out = tmp_path / "out"
+    code = main(["--leg", "FR", "--sim", "--sim-seed", "5", "--sim-config", str(cfg),
+                 "--policy", str(policies["hold"]), "--periods", "1", "--out", str(out)])
+    assert code == 0
+    truth = json.loads((out / "sim_truth.json").read_text())
+    assert set(truth) == {"FL", "FR", "RL", "RR"}
+    res = CalibrationResult.read(out / "FR.json")
+    assert geodesic_error_deg(res.rotation_matrix, truth["FR"]["rotation_matrix"]) < ROT_TOL_DEG
+    assert abs(res.time_offset_s - truth["FR"]["time_offset_s"]) < OFFSET_TOL_S
+    assert len(list(out.glob("session-*.mcap"))) == 1
+
+
+def _at(state: State, after_s: float, action):
+    """on_tick hook: run ``action(runner)`` once, ``after_s`` into ``state``."""
+    fired = []
+
+    def hook(runner):
+        s = runner.session
+        if not fired and s.state is state and s.t_state >= after_s:
+            fired.append(runner.ticks)
+            action(runner)
+    hook.fired = fired
+    return hook
+
+
+def test_mock_dies_mid_motion_damps_and_writes_nothing(policies, tmp_path):
+    robot = start_mock(seed=3)
+    try:
+        hook = _at(State.CALIBRATE, 1.0, lambda r: robot.kill())
+        result = deploy(robot, policies["hold"], ["FL"], tmp_path, on_tick=hook)
+    finally:
+        robot.stop()
+    assert hook.fired
+    assert result.final_state is State.DAMP and "stale LowState" in result.fault
+    assert not (tmp_path / "FL.json").exists()
+    assert not result.ok and "aborted: stale" in result.outcomes[0].error
+
+
+def test_imu_port_closing_is_a_clear_error(policies, tmp_path):
+    robot = start_mock(seed=4)
+    try:
+        hook = _at(State.CALIBRATE, 1.0, lambda r: robot.close_imu_port("FL"))
+        result = deploy(robot, policies["hold"], ["FL"], tmp_path, on_tick=hook)
+    finally:
+        robot.stop()
+    assert hook.fired
+    port = robot.imu_ports["FL"]
+    err = result.outcomes[0].error
+    assert "foot IMU FL failed" in err and port in err
+    assert "FL" in result.imu_errors and port in result.imu_errors["FL"]
+    assert result.fault is None and result.final_state is State.DONE  # lowered, sat down
+    assert not (tmp_path / "FL.json").exists() and not result.ok
+
+
+def test_silent_imu_port_aborts_the_leg_before_solve(policies, tmp_path):
+    """A port that opens but carries nothing (wrong port, IMU off): the leg is aborted while
+    lifted, lowered, reported; nothing is written."""
+    from hw.pty_link import PtyPair
+
+    robot = start_mock(seed=9)
+    silent = PtyPair()
+    meta = PolicyMeta.load(policies["hold"])
+    cfg = DeployConfig(legs=["FL"], out_dir=tmp_path, connect=list(robot.config.listen),
+                       imus=[ImuPort("FL", silent.port_path)], clock="lockstep", session=FAST)
+    try:
+        result = DeployRunner(cfg, meta).run()
+    finally:
+        robot.stop()
+        silent.close()
+    err = result.outcomes[0].error
+    assert "foot IMU FL failed: no data on " + silent.port_path in err
+    assert result.fault is None and result.final_state is State.DONE
+    assert "SOLVE" not in [t[2] for t in result.transitions]
+    assert not (tmp_path / "FL.json").exists()
+
+
+def test_l2_b_mid_motion_damps_within_one_tick(policies, tmp_path):
+    robot = start_mock(seed=5)
+    try:
+        hook = _at(State.CALIBRATE, 1.0, lambda r: robot.press("L2+B", 0.3))
+        result = deploy(robot, policies["hold"], ["FL"], tmp_path, on_tick=hook)
+    finally:
+        robot.stop()
+    (press_tick,) = hook.fired
+    damp = [t for t in result.transitions if t[2] == "DAMP"]
+    assert damp and damp[0][3] == "operator: L2+B"
+    # The tick right after the press was published (the first to see it) damped.
+    assert round(damp[0][0] / 0.02) == press_tick
+    assert result.final_state is State.DAMP and not (tmp_path / "FL.json").exists()
+
+
+def test_a_crash_in_the_loop_damps_the_robot_before_the_error_propagates(policies, tmp_path):
+    robot = start_mock(seed=10)
+
+    def boom(r):
+        raise RuntimeError("boom")
+
+    try:
+        with pytest.raises(RuntimeError, match="boom"):
+            deploy(robot, policies["hold"], ["FL"], tmp_path,
+                   on_tick=_at(State.TRIPOD, 0.2, boom))
+        import time
+
+        deadline = time.monotonic() + 5.0  # the mock applies commands on its own thread
+        while time.monotonic() < deadline and np.any(robot.sim.command.kp != 0):
+            time.sleep(0.05)
+        cmd = robot.sim.command  # what the motors obey
+        assert np.all(cmd.kp == 0) and np.all(cmd.kd > 0)
+    finally:
+        robot.stop()
+
+
+def test_nan_policy_damps(policies, tmp_path):
+    robot = start_mock(seed=6)
+    try:
+        result = deploy(robot, policies["nan"], ["FL"], tmp_path)
+    finally:
+        robot.stop()
+    assert result.final_state is State.DAMP and "non-finite policy action" in result.fault
+    assert [t[1] for t in result.transitions][-1] == "TRIPOD"
+    assert not (tmp_path / "FL.json").exists()
+
+
+def test_refuses_to_start_while_another_lowcmd_publisher_is_present(policies, tmp_path):
+    from hw.go2_msgs import LowCmdBuffer
+    from hw.transport import KEY_LOWCMD, Transport, TransportConfig
+
+    robot = start_mock(seed=7)
+    other = Transport(TransportConfig(connect=list(robot.config.listen))).open()
+    try:
+        other.publisher(KEY_LOWCMD).put(LowCmdBuffer().finalize())
+        with pytest.raises(DeployError, match="refusing to publish 'rt/lowcmd'"):
+            deploy(robot, policies["hold"], ["FL"], tmp_path)
+    finally:
+        other.close()
+        robot.stop()
+
+
+def test_joystick_mode_stand_then_calibrate_by_combo(policies, tmp_path):
+    """No --leg: L2+A stands, R1+Down calibrates RR (the remote's bytes in LowState), then a
+    stop request (Ctrl-C) damps and ends the run."""
+    robot = start_mock(seed=8, joystick=[[0.3, "L2+A"], [2.5, "R1+Down"]])
+    meta = PolicyMeta.load(policies["hold"])
+
+    def stop_after_report(r):
+        if r.session.outcomes and r.session.outcomes[0].payload is not None:
+            r.request_stop()
+
+    cfg = DeployConfig(legs=[], joystick=True, out_dir=tmp_path,
+                       connect=list(robot.config.listen),
+                       imus=[ImuPort(leg, p) for leg, p in robot.imu_ports.items()],
+                       clock="lockstep", session=FAST, truth=truth_tuples(robot.truth()))
+    try:
+        result = DeployRunner(cfg, meta, on_tick=stop_after_report).run()
+    finally:
+        robot.stop()
+    causes = [t[3] for t in result.transitions]
+    assert causes[0] == "operator: L2+A" and "operator: calibrate RR" in causes
+    assert causes[-1] == "operator: stop (Ctrl-C)" and result.final_state is State.DAMP
+    assert result.fault is None and result.ok
+    assert [o.leg for o in result.outcomes] == ["RR"]
+    assert (tmp_path / "RR.json").exists()
+
+
+# ---------------------------------------------------------------------------- trained policy
+def _trained_policy():
+    try:
+        return default_policy_path()
+    except ValueError:
+        return None
+
+
+@pytest.mark.skipif(_trained_policy() is None,
+                    reason="no trained tripod policy in policies/ yet (the policy engineer "
+                           "commits it); the floor test needs it to stand on three legs")
+@pytest.mark.xfail(reason="the committed tripod policy does not yet hold the body within the 30 deg "
+                          "tilt limit on every leg (issue 4 open: docs/results/policy.md)",
+                   strict=False)
+def test_robot_on_the_floor_all_legs_recover_mounting(tmp_path):
+    robot = start_mock(seed=21, base="free")
+    try:
+        result = deploy(robot, _trained_policy(), ["FL", "FR", "RL", "RR"], tmp_path,
+                        session=SessionConfig(), periods=1)
+    finally:
+        robot.stop()
+    assert result.fault is None, result.fault
+    check_against_truth(result, robot, tmp_path, ["FL", "FR", "RL", "RR"])
