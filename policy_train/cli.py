@@ -22,7 +22,7 @@ __all__ = ["main"]
 def _tripod(a) -> int:
     import torch
 
-    from policy_train.config import TrainConfig
+    from policy_train.config import RewardConfig, TrainConfig
     from policy_train.runner import Trainer
 
     if a.iterations < 1:
@@ -31,6 +31,8 @@ def _tripod(a) -> int:
     if a.resume:
         d = torch.load(a.resume, weights_only=False, map_location="cpu")
         cfg = TrainConfig.from_dict(d["train_config"])
+        if a.new_rewards:  # continue the weights under this code's reward configuration
+            cfg.env.rewards = RewardConfig()
     if a.num_envs is not None:
         cfg.env.num_envs = a.num_envs
     if a.plans_per_leg is not None:
@@ -43,6 +45,8 @@ def _tripod(a) -> int:
         cfg.env.plan_pool_file = a.plan_pool
     if a.steps_per_env is not None:
         cfg.ppo.num_steps_per_env = a.steps_per_env
+    if a.entropy_coef is not None:
+        cfg.ppo.entropy_coef = a.entropy_coef
     run_dir = Path(a.run_dir or f"runs/tripod_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
     t0 = time.time()
     tr = Trainer(cfg, run_dir, seed=a.seed, log=lambda s: print(s, flush=True))
@@ -95,7 +99,7 @@ def _eval(a) -> int:
 
     legs = tuple(s.strip().upper() for s in a.legs.split(",")) if a.legs else None
     evaluate_policy(a.onnx, episodes=a.episodes, legs=legs, seed=a.seed,
-                    write=not a.no_write, results_path=a.results)
+                    write=not a.no_write, results_path=a.results, nominal=a.nominal)
     return 0
 
 
@@ -111,10 +115,13 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--plans-per-leg", type=int, default=None)
     t.add_argument("--steps-per-env", type=int, default=None)
     t.add_argument("--save-interval", type=int, default=None)
+    t.add_argument("--entropy-coef", type=float, default=None, help="PPO entropy bonus")
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this")
     t.add_argument("--model-file", default=None, help="compiled training model (.mjb)")
     t.add_argument("--plan-pool", default=None, help="precomputed excitation plan pool (.npz)")
     t.add_argument("--resume", default=None, help="checkpoint to continue from")
+    t.add_argument("--new-rewards", action="store_true",
+                   help="with --resume: use the current reward weights, not the checkpoint's")
     t.add_argument("--run-dir", default=None)
     t.add_argument("--export", default=None, help="after training, export to this path stem")
     e = sub.add_parser("export", help="export a checkpoint to ONNX + JSON")
@@ -126,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     v.add_argument("--legs", default=None)
     v.add_argument("--seed", type=int, default=1)
     v.add_argument("--no-write", action="store_true", help="do not write results files")
+    v.add_argument("--nominal", action="store_true",
+                   help="no domain randomisation (writes only the JSON's evaluation_nominal)")
     v.add_argument("--results", default="docs/results/policy.md")
     k = sub.add_parser("pack", help="compiled model + plan pool for a remote training machine")
     k.add_argument("outdir")

@@ -24,15 +24,29 @@ class RewardConfig:
     track_ang_vel: float = 2.0    # exp(-|w* - w|^2 / sigma)
     track_sigma: float = 0.25
     slip: float = -0.1            # sum over stance feet in contact of |v_foot_xy|
-    termination: float = -100.0   # base touches the ground (or the body falls)
-    collision: float = -1.0       # count of non-foot geoms touching the ground (> 1 N)
+    termination: float = -2500.0  # base touches the ground (or the body falls); paper -100
+    collision: float = -5.0       # count of non-foot geoms touching the ground (> 1 N); paper -1
     base_height: float = -10.0    # (h - h*)^2
     base_height_target: float = 0.33
-    orientation: float = -1.0     # |g_xy|^2 (projected gravity)
+    orientation: float = -20.0    # |g_xy|^2 (projected gravity); paper -1
     lin_vel: float = -1.0         # |v_B|^2
     joint_acc: float = -2.5e-7    # sum ddq^2
     torques: float = -1e-5        # sum tau^2
     action_rate: float = -0.01    # sum (a_t - a_{t-1})^2
+    # not in the paper (v2, docs/policy-training.md): a level, still base and a clean tripod
+    upright: float = 2.0          # exp(-|g_xy|^2 / upright_sigma)
+    upright_sigma: float = 0.005  # |g_xy|^2 = 0.005 at 4.1 deg
+    ang_vel_xy: float = -2.0      # |w_xy|^2, roll/pitch rate
+    lift_clearance: float = -10.0 # shortfall of the lifted foot below lift_clearance_m, in [0, 1]
+    lift_clearance_m: float = 0.04
+    support: float = -20.0        # m the COM lies short of support_margin_m inside the triangle
+    support_margin_m: float = 0.03
+
+    @classmethod
+    def paper(cls) -> RewardConfig:
+        """Paper Table III only (v1): the terms added for v2 switched off."""
+        return cls(termination=-100.0, collision=-1.0, orientation=-1.0, upright=0.0,
+                   ang_vel_xy=0.0, lift_clearance=0.0, support=0.0)
 
 
 @dataclass
@@ -130,7 +144,10 @@ class TrainConfig:
     @classmethod
     def from_dict(cls, d: dict) -> TrainConfig:
         e = dict(d["env"])
-        rw = RewardConfig(**e.pop("rewards"))
+        r = e.pop("rewards")
+        # configurations written before the v2 terms existed: those terms were off
+        rw = RewardConfig(**{**{k: 0.0 for k in ("upright", "ang_vel_xy", "lift_clearance",
+                                                 "support")}, **r})
         dr = {k: tuple(v) if isinstance(v, list) else v for k, v in e.pop("dr").items()}
         e = {k: tuple(v) if isinstance(v, list) else v for k, v in e.items()}
         p = {k: tuple(v) if isinstance(v, list) else v for k, v in d["ppo"].items()}

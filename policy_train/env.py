@@ -150,6 +150,7 @@ class TripodEnv:
         b = self.batch
         self.qpos, self.qvel, self.ctrl = b.bind("qpos"), b.bind("qvel"), b.bind("ctrl")
         self.sensordata, self.act_force = b.bind("sensordata"), b.bind("actuator_force")
+        self.subtree_com = b.bind("subtree_com")  # (N, nbody, 3); the base's = whole robot's
         self.gainprm, self.biasprm = b.expand("actuator_gainprm"), b.expand("actuator_biasprm")
         self.default_pose = default_crouch("model")
         lo = np.concatenate([position_limits(leg)[0] for leg in MODEL_LEGS]) + cfg.soft_limit_margin
@@ -423,6 +424,7 @@ class TripodEnv:
         qp, qv = self.qpos, self.qvel
         self.quat = qp[:, 3:7]
         self.base_pos = qp[:, 0:3]
+        self.com_xy = self.subtree_com[:, self.tm.base_body, :2].copy()  # world m
         self.lin_vel_b = _quat_rotate_inv(self.quat, qv[:, 0:3])
         self.ang_vel_b = qv[:, 3:6].copy()
         self.gravity_b = projected_gravity(self.quat)

@@ -45,7 +45,14 @@ def foot_angular_velocity(q_leg: np.ndarray, dq_leg: np.ndarray, omega_base: np.
 
 
 def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, write: bool = True,
-                    results_path="docs/results/policy.md", log=print) -> dict:
+                    results_path="docs/results/policy.md", log=print, nominal: bool = False) -> dict:
+    """Per-leg figures of the policy over ``episodes`` calibration motions per leg.
+
+    ``nominal``: no domain randomisation (nominal masses, gains, friction 0.8, no latency,
+    pushes or observation noise: the deploy mock's situation); then ``write`` stores the
+    figures under the JSON's ``evaluation_nominal`` only, and the DR evaluation's report (run
+    after it) shows them in a second table.
+    """
     import onnxruntime as ort
 
     onnx_path = Path(onnx_path)
@@ -59,6 +66,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     cfg.plan_pool_file = None
     cfg.num_envs = episodes * len(legs)
     cfg.seed = seed
+    cfg.dr.enabled = not nominal
     cfg.command_resample_s = 1e6
     cfg.episode_s = 1e6  # episodes end with the motion (below), not by time-out
     cfg.action_scale = float(meta["action"]["scale"])
@@ -130,15 +138,34 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
             "cn_p90": float(np.percentile(cn, 90)) if cn else float("nan"),
         }
     result = {"policy": onnx_path.name, "episodes_per_leg": episodes, "seed": seed,
+              "domain_randomisation": not nominal,
               "motion_s": total, "t_r": sched.t_r, "periods": sched.periods,
               "wall_s": time.time() - t0, "legs": rows, "targets": TARGETS}
     table = format_table(result)
     log(table)
-    if write:
+    if write and nominal:
+        meta["evaluation_nominal"] = result
+        write_text_atomic(onnx_path.with_suffix(".json"), json.dumps(meta, indent=1) + "\n")
+    elif write:
         write_text_atomic(results_path, _report(result, meta, table))
         meta["evaluation"] = result
         write_text_atomic(onnx_path.with_suffix(".json"), json.dumps(meta, indent=1) + "\n")
     return result
+
+
+def _nominal_section(meta: dict) -> str:
+    n = meta.get("evaluation_nominal")
+    if not n or n.get("policy") != meta.get("onnx"):
+        return ""
+    return f"""
+## Without domain randomisation
+
+`a2i-train eval policies/{n['policy']} --nominal --episodes {n['episodes_per_leg']}`: nominal
+MuJoCo model, gains and masses, friction 0.8, no latency, pushes or observation noise (the
+situation of the deploy mock); the same calibration motion.
+
+{format_table(n)}
+"""
 
 
 def _rms(sum_sq: np.ndarray, count: np.ndarray) -> float:
@@ -188,6 +215,7 @@ Targets: success >= 99 %, tilt RMS <= 3 deg, angular rate RMS <= 0.1 rad/s, trac
 {table}
 
 Wall time {r['wall_s']:.0f} s.
+{_nominal_section(meta)}
 
 ## Training curve
 

@@ -13,17 +13,24 @@ import numpy as np
 
 __all__ = [
     "action_rate",
+    "ang_vel_xy",
     "base_height",
     "collision",
     "compute_rewards",
     "joint_acc",
+    "lift_clearance",
     "lift_indicator",
     "lin_vel",
     "orientation",
     "slip",
+    "support_margin",
     "torques",
     "track_ang_vel",
+    "upright",
 ]
+
+FOOT_RADIUS = 0.022
+"""m, height of a Go2 foot site above the floor when the foot stands on it."""
 
 
 def lift_indicator(active: np.ndarray, touching: np.ndarray) -> np.ndarray:
@@ -55,6 +62,44 @@ def base_height(h: np.ndarray, target: float) -> np.ndarray:
 def orientation(gravity_b: np.ndarray) -> np.ndarray:
     """|g_xy|^2 of the projected gravity (0 when level)."""
     return np.sum(gravity_b[:, :2] ** 2, -1)
+
+
+def upright(gravity_b: np.ndarray, sigma: float) -> np.ndarray:
+    """exp(-|g_xy|^2 / sigma) in (0, 1]: 1 when level (a bounded, positive shaping term that
+    keeps a level robot's step reward positive, so falling never pays)."""
+    return np.exp(-np.sum(gravity_b[:, :2] ** 2, -1) / sigma)
+
+
+def ang_vel_xy(ang_vel_b: np.ndarray) -> np.ndarray:
+    """|w_xy|^2 of the base angular velocity (roll and pitch rates), (rad/s)^2."""
+    return np.sum(ang_vel_b[:, :2] ** 2, -1)
+
+
+def lift_clearance(foot_z: np.ndarray, active: np.ndarray, clearance: float) -> np.ndarray:
+    """Shortfall of the lifted foot's height above the floor below ``clearance`` m, as a
+    fraction in [0, 1] (1 = on the floor); 0 where no lift is active. foot_z: (N,) site z, m."""
+    short = np.clip((clearance - (foot_z - FOOT_RADIUS)) / clearance, 0.0, 1.0)
+    return np.where(active, short, 0.0)
+
+
+def support_margin(com_xy: np.ndarray, feet_xy: np.ndarray, active: np.ndarray,
+                   margin: float) -> np.ndarray:
+    """How far (m) the centre of mass's ground projection lies short of ``margin`` inside the
+    triangle of the three stance feet: max(0, margin - d), d the signed distance to the nearest
+    edge (positive inside). com_xy (N, 2), feet_xy (N, 3, 2) world m; 0 where not ``active``."""
+    a, b, c = feet_xy[:, 0], feet_xy[:, 1], feet_xy[:, 2]
+
+    def cross(u, v):
+        return u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
+
+    orient = np.sign(cross(b - a, c - a))
+    orient = np.where(orient == 0, 1.0, orient)
+    d = []
+    for p, q in ((a, b), (b, c), (c, a)):
+        e = q - p
+        d.append(orient * cross(e, com_xy - p) / np.maximum(np.linalg.norm(e, axis=-1), 1e-6))
+    dmin = np.min(np.stack(d, -1), -1)
+    return np.where(active, np.maximum(0.0, margin - dmin), 0.0)
 
 
 def lin_vel(v_b: np.ndarray) -> np.ndarray:
@@ -94,6 +139,12 @@ def compute_rewards(env) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]
     foot_vel = sd[:, tm.foot_vel[:, None] + np.arange(2)]
     contact_now = sd[:, tm.foot_contact] > 0
     other_f = np.linalg.norm(sd[:, tm.other_contact[:, None] + 1 + np.arange(3)], axis=-1)
+    foot_pos = sd[:, tm.foot_pos[:, None] + np.arange(3)]          # (N, 4, 3) world m
+    li = np.maximum(lifted, 0)
+    # the body must stand over the stance feet from the lift until the leg is back down
+    tripod = has & (env.phase >= 1) & (env.phase <= 4)
+    order = np.argsort(~stance, axis=1, kind="stable")[:, :3]     # stance feet first
+    feet_xy = np.take_along_axis(foot_pos[:, :, :2], order[:, :, None], 1)
 
     raw = {
         "lift": lift_indicator(active, env.lift_touch),
@@ -103,11 +154,15 @@ def compute_rewards(env) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]
         "collision": collision(other_f),
         "base_height": base_height(h, w.base_height_target),
         "orientation": orientation(env.gravity_b),
+        "upright": upright(env.gravity_b, w.upright_sigma),
+        "ang_vel_xy": ang_vel_xy(env.ang_vel_b),
+        "lift_clearance": lift_clearance(foot_pos[np.arange(N), li, 2], active, w.lift_clearance_m),
+        "support": support_margin(env.com_xy, feet_xy, tripod, w.support_margin_m),
         "lin_vel": lin_vel(env.lin_vel_b),
         "joint_acc": joint_acc(env.dq, env.last_qvel, dt),
         "torques": torques(env.act_force),
         "action_rate": action_rate(env.actions, env.prev_actions),
     }
-    terms = {k: v * getattr(w, k) * dt for k, v in raw.items()}
+    terms = {k: v * getattr(w, k) * dt for k, v in raw.items() if getattr(w, k) != 0.0}
     rew = np.sum(np.stack(list(terms.values())), 0)
     return rew, terms, terminated

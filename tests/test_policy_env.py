@@ -6,7 +6,7 @@ import pytest
 
 from calib.joints import model_to_sdk
 from policy_train import rewards as R
-from policy_train.config import EnvConfig
+from policy_train.config import EnvConfig, RewardConfig, TrainConfig
 from policy_train.env import TripodEnv
 
 
@@ -111,3 +111,44 @@ def test_reward_term_signs():
     for k in ("slip", "termination", "collision", "base_height", "orientation", "lin_vel",
               "joint_acc", "torques", "action_rate"):
         assert getattr(w, k) < 0, k
+
+
+def test_v2_shaping_terms():
+    g = np.array([[0, 0, -1.0], [np.sin(0.1), 0, -np.cos(0.1)]])
+    up = R.upright(g, 0.005)
+    assert up[0] == 1.0 and 0 < up[1] < 0.2  # 5.7 deg tilt: |g_xy|^2 = 0.00997
+    assert list(R.ang_vel_xy(np.array([[0.3, 0.4, 2.0]]))) == [pytest.approx(0.25)]  # yaw free
+    z = np.array([R.FOOT_RADIUS, R.FOOT_RADIUS + 0.02, R.FOOT_RADIUS + 0.1, R.FOOT_RADIUS])
+    act = np.array([True, True, True, False])
+    np.testing.assert_allclose(R.lift_clearance(z, act, 0.04), [1.0, 0.5, 0.0, 0.0])
+    feet = np.array([[[0.2, 0.1], [0.2, -0.1], [-0.2, 0.0]]] * 3)  # either winding works
+    feet[1] = feet[1, ::-1]
+    com = np.array([[0.05, 0.0], [0.05, 0.0], [0.5, 0.0]])
+    sm = R.support_margin(com, feet, np.ones(3, bool), 0.03)
+    # centroid-ish point: 0.09 m from the rear edges, 0.15 m from the front edge
+    assert sm[0] == 0.0 and sm[1] == 0.0
+    assert sm[2] == pytest.approx(0.3 + 0.03)  # 0.3 m outside the front edge x = 0.2
+    assert R.support_margin(com, feet, np.zeros(3, bool), 0.03).sum() == 0.0
+    w = RewardConfig()
+    assert w.upright > 0
+    for k in ("ang_vel_xy", "lift_clearance", "support"):
+        assert getattr(w, k) < 0, k
+    paper = RewardConfig.paper()
+    assert paper.orientation == -1.0 and paper.collision == -1.0 and paper.support == 0.0
+
+
+def test_old_configs_load_without_v2_terms():
+    d = TrainConfig().to_dict()
+    for k in ("upright", "ang_vel_xy", "lift_clearance", "support"):
+        del d["env"]["rewards"][k]
+    rw = TrainConfig.from_dict(d).env.rewards
+    assert rw.upright == rw.ang_vel_xy == rw.lift_clearance == rw.support == 0.0
+    assert TrainConfig.from_dict(TrainConfig().to_dict()).env.rewards == RewardConfig()
+
+
+def test_com_and_v2_terms_in_env(env):
+    assert env.com_xy.shape == (6, 2)
+    # the whole robot's centre of mass lies near the base origin at the start pose
+    assert np.all(np.linalg.norm(env.com_xy - env.base_pos[:, :2], axis=1) < 0.1)
+    _, terms, _ = R.compute_rewards(env)
+    assert {"upright", "ang_vel_xy", "lift_clearance", "support"} <= set(terms)

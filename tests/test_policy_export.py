@@ -73,3 +73,18 @@ def test_eval_runs_on_export(exported, tmp_path):
     assert set(r["legs"]) == {"FL"} and 0.0 <= r["legs"]["FL"]["success"] <= 1.0
     assert out.exists() and "| FL |" in out.read_text()
     assert json.loads((d / "pol.json").read_text())["evaluation"]["legs"]["FL"]["episodes"] == 1
+
+
+def test_nominal_eval_goes_to_the_json_then_the_report(exported, tmp_path):
+    d, _ = exported
+    from policy_train.evaluate import evaluate_policy
+
+    out = tmp_path / "policy.md"
+    r = evaluate_policy(d / "pol.onnx", episodes=1, legs=("RR",), results_path=out,
+                        log=lambda s: None, nominal=True)
+    assert r["domain_randomisation"] is False and not out.exists()
+    meta = json.loads((d / "pol.json").read_text())
+    assert meta["evaluation_nominal"]["legs"]["RR"]["episodes"] == 1
+    evaluate_policy(d / "pol.onnx", episodes=1, legs=("RR",), results_path=out, log=lambda s: None)
+    text = out.read_text()
+    assert "Without domain randomisation" in text and text.count("| RR |") == 2
