@@ -141,7 +141,19 @@ def main(argv: list[str] | None = None) -> int:
     k.add_argument("--plans-per-leg", type=int, default=8)
     k.add_argument("--seed", type=int, default=1)
     a = p.parse_args(argv)
-    return {"tripod": _tripod, "export": _export, "eval": _eval, "pack": _pack}[a.cmd](a)
+    # Input files named on the command line must exist: say so in one line, exit 2.
+    for name in ("checkpoint", "onnx", "resume"):
+        path = getattr(a, name, None)
+        if path is not None and not Path(path).is_file():
+            p.error(f"{name} {path}: no such file")
+    if a.cmd == "eval" and not Path(a.onnx).with_suffix(".json").is_file():
+        p.error(f"{Path(a.onnx).with_suffix('.json')}: no policy metadata beside the ONNX file")
+    try:
+        return {"tripod": _tripod, "export": _export, "eval": _eval, "pack": _pack}[a.cmd](a)
+    except (OSError, ValueError) as e:
+        print(f"a2i-train {a.cmd}: error: {str(e).splitlines()[0] if str(e) else e!r}",
+              file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

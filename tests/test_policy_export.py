@@ -88,3 +88,15 @@ def test_nominal_eval_goes_to_the_json_then_the_report(exported, tmp_path):
     evaluate_policy(d / "pol.onnx", episodes=1, legs=("RR",), results_path=out, log=lambda s: None)
     text = out.read_text()
     assert "Without domain randomisation" in text and text.count("| RR |") == 2
+
+
+def test_cli_missing_inputs_exit_2_with_one_line(tmp_path):
+    from policy_train.cli import main
+
+    for argv in (["eval", str(tmp_path / "none.onnx")],
+                 ["export", str(tmp_path / "none.pt"), "--out", str(tmp_path / "p")],
+                 ["tripod", "--resume", str(tmp_path / "none.pt"), "--iterations", "1"]):
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert exc.value.code == 2
+    assert not list(tmp_path.iterdir())
