@@ -156,8 +156,10 @@ class FootImuChannel:
         return round((stamp_s + epoch_s) * 1e6)
 
     def device_us_realtime(self, host_rel_s: float) -> int:
-        """Realtime device clock (its own offset and drift) at ``host_rel_s`` s after the mock's
-        start -> integer microseconds."""
+        """Realtime device clock (its own offset and drift) at ``host_rel_s`` s of the host's
+        monotonic wall clock after the mock's start (the instant the frame is written; never
+        sim time, so the stamps do not jump when the simulation falls behind) -> integer
+        microseconds."""
         return round((self.imu.clock_offset_s + host_rel_s * self._drift) * 1e6)
 
     def frame(self, sample: ImuSample, t_device_us: int, quat_wxyz) -> bytes:

@@ -22,9 +22,13 @@ deterministic.
 Time offsets. ``t_d = t_I - t_E``. Lockstep: the IMU device clock is the simulation clock
 (+ ``tick_epoch_s``, like the lowstate tick): a frame describing sim time tau carries
 ``t_device_us = round((tau + tick_epoch_s + t_d) * 1e6)`` and the lowstate of tau carries
-``tick = round((tau + tick_epoch_s) * 1000)``. Realtime: the frame describing tau is written at
-wall ``start + tau + t_d + D`` stamped by the IMU's own clock at that instant, the lowstate of
-tau is published at ``start + tau + D``, ``D = max(0, -min t_d)``.
+``tick = round((tau + tick_epoch_s) * 1000)``. Realtime: the stamps come from the monotonic wall
+clock, not from sim time, so they never jump when the simulation falls behind. The state of
+sim time tau stands for the wall instant ``W(tau) = max(its slot on the schedule, the moment
+it was computed)`` (linear between physics steps); its lowstate carries the tick of ``W(tau)``
+(ms since the mock's start + epoch) and is published at ``W(tau) + D``; the IMU frame describing
+tau is written at ``W(tau) + t_d + D`` stamped by the IMU's own clock (offset, drift) at that
+instant, ``D = max(0, -min t_d)``. Any W keeps ``t_I - t_E = t_d`` for the same motion.
 """
 
 from __future__ import annotations
@@ -161,6 +165,15 @@ class MockRobot:
         self._writers: list[PortWriter] = []
 
         self._steps = 0
+        self._dt_ns = round(self._dt * 1e9)
+        self._delay_ns = round(self.output_delay_s * 1e9)
+        self._epoch_ms = round(self._epoch * 1000.0)
+        # Realtime stamps: wall instants (monotonic ns) of the last two physics steps' states,
+        # and the fixed origin of the tick and of the IMU device clocks (the mock's start; the
+        # schedule's origin ``_start_ns`` moves on a resync, this one never does).
+        self._w_ns = 0
+        self._w_prev_ns = 0
+        self._clock0_ns = 0
         self._started_outputs = False
         self._last_lowstate: tuple[bytes, int] | None = None
         self._last_publish_wall = 0.0
@@ -401,7 +414,8 @@ class MockRobot:
         return self._steps * self._dt
 
     def tick_ms(self, t: float | None = None) -> int:
-        """The lowstate tick (ms) of sim time ``t`` (default now)."""
+        """The lockstep lowstate tick (ms) of sim time ``t`` (default now). (The realtime tick
+        is read from the wall clock instead: the module docstring.)"""
         tt = self.sim_time if t is None else t
         return round((tt + self._epoch) * 1000.0)
 
@@ -436,6 +450,8 @@ class MockRobot:
         """Everything the robot emits for the state at the current sim time."""
         k = self._steps
         tau = k * self._dt
+        if not self.lockstep:
+            self._stamp_step(k)
         for leg, ch in self.channels.items():
             if ch.wants(tau, self._dt):
                 om = self.sim.foot_angular_velocity(leg)
@@ -443,12 +459,33 @@ class MockRobot:
                 for s in ch.update(tau, om, sf):
                     self._emit_imu(ch, s)
         if k % self._ls_every == 0:
-            item = (self._lowstate_bytes(tau), self.tick_ms(tau))
+            tick = self.tick_ms(tau) if self.lockstep else self._wall_tick_ms(self._w_ns)
+            item = (self._lowstate_bytes(tau, tick), tick)
             self._last_lowstate = item
             self._emit(_OUT_LOWSTATE, tau, item)
         if k % self._wl_every == 0:
             keys = self.keys_at(tau)
             self._emit(_OUT_WIRELESS, tau, encode_wireless_controller(keys=keys))
+
+    def _stamp_step(self, k: int) -> None:
+        """Realtime: the wall instant (monotonic ns) that the state of physics step ``k``
+        stands for: its slot on the schedule, or now if the simulation is late for it (the
+        robot's clocks run on while the simulation catches up). Non-decreasing: the schedule
+        only moves forward (resyncs) and so does the clock."""
+        w = max(self._start_ns + k * self._dt_ns, time.monotonic_ns(), self._w_ns)
+        self._w_prev_ns = w if k == 0 else self._w_ns
+        self._w_ns = w
+
+    def _wall_ns_at(self, t: float) -> int:
+        """Realtime: the wall instant (ns) of sim time ``t`` within the last physics step,
+        linear between the two steps' instants (IMU samples fall between steps)."""
+        frac = min(1.0, max(0.0, (t - (self._steps - 1) * self._dt) / self._dt))
+        return self._w_prev_ns + round(frac * (self._w_ns - self._w_prev_ns))
+
+    def _wall_tick_ms(self, w_ns: int) -> int:
+        """Realtime lowstate tick (ms) of wall instant ``w_ns``: the free-running clock started
+        at the mock's start, with the same epoch as the lockstep tick."""
+        return self._epoch_ms + (w_ns - self._clock0_ns + 500_000) // 1_000_000
 
     def _emit_imu(self, ch: FootImuChannel, s) -> None:
         # Orientation of the IMU frame in the world (the frame's quat field): R_W^F R_I^F, at
@@ -459,10 +496,13 @@ class MockRobot:
             data = ch.frame(s, ch.device_us_lockstep(s.stamp, self._epoch), quat)
             self._send_imu(ch, data, s)
         else:
-            d = self.output_delay_s
-            data = ch.frame(s, ch.device_us_realtime(s.stamp + d), quat)
-            release = s.true_time + ch.imu.sensor.time_offset + d
-            self._schedule(release, _OUT_IMU, (ch, data, s))
+            # The sample describes the motion at s.true_time, i.e. the wall instant w; the
+            # device clock stamps it t_d (+ jitter) + D later, when it is written.
+            w = self._wall_ns_at(s.true_time)
+            stamp_ns = w + round((s.stamp - s.true_time) * 1e9) + self._delay_ns
+            data = ch.frame(s, ch.device_us_realtime((stamp_ns - self._clock0_ns) * 1e-9), quat)
+            release = w + round(ch.imu.sensor.time_offset * 1e9) + self._delay_ns
+            self._schedule_at(release, _OUT_IMU, (ch, data, s))
 
     def _send_imu(self, ch: FootImuChannel, data: bytes, s) -> None:
         if self._killed:
@@ -471,7 +511,7 @@ class MockRobot:
         if self.on_imu_frame is not None:
             self.on_imu_frame(ch.leg, data, s)
 
-    def _lowstate_bytes(self, tau: float) -> bytes:
+    def _lowstate_bytes(self, tau: float, tick: int) -> bytes:
         sim, ls = self.sim, self._ls
         q, dq = self._enc.measure(sim.q_sdk, sim.dq_sdk)
         ls.set_motors(q, dq, model_to_sdk(sim.tau))
@@ -481,17 +521,17 @@ class MockRobot:
         ls.set_imu(quat, gyro, acc, quat_to_rpy(quat))
         ls.set_foot_force(sim.foot_contact_forces[_SDK_FROM_MODEL_LEG] * FOOT_FORCE_UNITS_PER_N)
         ls.set_wireless_remote(encode_wireless_remote(self.keys_at(tau)))
-        ls.set_tick(self.tick_ms(tau))
+        ls.set_tick(tick)
         return ls.finalize()
 
     def _emit(self, kind: int, tau: float, item) -> None:
         if self.lockstep:
             self._publish(kind, item)
         else:
-            self._schedule(tau + self.output_delay_s, kind, item)
+            self._schedule_at(self._w_ns + self._delay_ns, kind, item)
 
-    def _schedule(self, rel_s: float, kind: int, item) -> None:
-        t_ns = self._start_ns + round(rel_s * 1e9)
+    def _schedule_at(self, t_ns: int, kind: int, item) -> None:
+        """Realtime: release ``item`` at wall instant ``t_ns`` (monotonic ns)."""
         heapq.heappush(self._heap, (t_ns, next(self._heap_seq), kind, item))
 
     def _release(self, now_ns: int) -> None:
@@ -557,6 +597,7 @@ class MockRobot:
         dt_ns = round(self._dt * 1e9)
         resync_ns = int(self.config.resync_after_s * 1e9)
         self._start_ns = time.monotonic_ns()
+        self._clock0_ns = self._start_ns
         self._emit_initial()
         stop = self._stop
         while not stop.is_set():
