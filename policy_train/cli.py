@@ -22,7 +22,7 @@ __all__ = ["main"]
 def _tripod(a) -> int:
     import torch
 
-    from policy_train.config import RewardConfig, TrainConfig
+    from policy_train.config import EnvConfig, RewardConfig, TrainConfig
     from policy_train.runner import Trainer
 
     if a.iterations < 1:
@@ -31,8 +31,12 @@ def _tripod(a) -> int:
     if a.resume:
         d = torch.load(a.resume, weights_only=False, map_location="cpu")
         cfg = TrainConfig.from_dict(d["train_config"])
-        if a.new_rewards:  # continue the weights under this code's reward configuration
+        if a.new_rewards:  # continue the weights under this code's rewards and episodes
+            fresh = EnvConfig()
             cfg.env.rewards = RewardConfig()
+            for k in ("terminate_on_contact", "p_reference_start", "reference_margin_m",
+                      "reference_joint_noise", "p_reference_shift", "lift_leg_weights"):
+                setattr(cfg.env, k, getattr(fresh, k))
     if a.num_envs is not None:
         cfg.env.num_envs = a.num_envs
     if a.plans_per_leg is not None:
@@ -121,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--plan-pool", default=None, help="precomputed excitation plan pool (.npz)")
     t.add_argument("--resume", default=None, help="checkpoint to continue from")
     t.add_argument("--new-rewards", action="store_true",
-                   help="with --resume: use the current reward weights, not the checkpoint's")
+                   help="with --resume: use the current reward weights and episode settings "
+                        "(contact terminations, reference starts), not the checkpoint's")
     t.add_argument("--run-dir", default=None)
     t.add_argument("--export", default=None, help="after training, export to this path stem")
     e = sub.add_parser("export", help="export a checkpoint to ONNX + JSON")

@@ -26,8 +26,8 @@ class RewardConfig:
     slip: float = -0.1            # sum over stance feet in contact of |v_foot_xy|
     termination: float = -2500.0  # base touches the ground (or the body falls); paper -100
     collision: float = -5.0       # count of non-foot geoms touching the ground (> 1 N); paper -1
-    base_height: float = -10.0    # (h - h*)^2
-    base_height_target: float = 0.33
+    base_height: float = -30.0    # (h - h*)^2; v1 -10 let it crouch to 0.24 m
+    base_height_target: float = 0.31
     orientation: float = -20.0    # |g_xy|^2 (projected gravity); paper -1
     lin_vel: float = -1.0         # |v_B|^2
     joint_acc: float = -2.5e-7    # sum ddq^2
@@ -104,6 +104,21 @@ class EnvConfig:
     plans_per_leg: int = 6
     fall_tilt: float = 1.0            # rad; beyond: terminated
     fall_height: float = 0.12         # m; base below: terminated
+    # the evaluation's failure conditions also end the episode: a thigh, calf or body on the
+    # ground, or the lifted foot down during hold / excitation
+    terminate_on_contact: bool = True
+    # reference-state initialisation (policy_train.tripod_pose): this share of the resets
+    # starts in a level, statically balanced tripod, in the schedule's hold phase
+    p_reference_start: float = 0.3
+    reference_margin_m: float = 0.05  # centre of mass inside the support triangle
+    reference_joint_noise: float = 0.02  # rad
+    # share of the reference starts placed in the shift phase instead, part-way (uniform)
+    # from the four-leg stance to the shifted stance (body over the other three feet, foot
+    # still down): the transition learnt backwards from its end (front legs need ~8 cm)
+    p_reference_shift: float = 0.5
+    # front legs are drawn twice as often: their lift needs the larger shift (v3 learnt the
+    # rear legs first and the front ones not at all)
+    lift_leg_weights: tuple[float, float, float, float] = (2.0, 2.0, 1.0, 1.0)  # FL FR RL RR
     seed: int = 0
     threads: int = 0                  # MuJoCo batch threads; 0 = all CPUs
     model_file: str | None = None     # compiled .mjb (TrainModel.save) instead of the URDF
@@ -129,7 +144,7 @@ class PPOConfig:
     entropy_coef: float = 0.005
     desired_kl: float = 0.01
     max_grad_norm: float = 1.0
-    stage1_fraction: float = 0.25     # first fraction of iterations: tripod only (paper phase 1)
+    stage1_fraction: float = 0.15     # first fraction of iterations: tripod only (paper phase 1)
     save_interval: int = 25
 
 
@@ -148,6 +163,11 @@ class TrainConfig:
         # configurations written before the v2 terms existed: those terms were off
         rw = RewardConfig(**{**{k: 0.0 for k in ("upright", "ang_vel_xy", "lift_clearance",
                                                  "support")}, **r})
+        # ... and so were the episode-ending contacts and the reference starts
+        e.setdefault("terminate_on_contact", False)
+        e.setdefault("p_reference_start", 0.0)
+        e.setdefault("p_reference_shift", 0.0)
+        e.setdefault("lift_leg_weights", (1.0, 1.0, 1.0, 1.0))
         dr = {k: tuple(v) if isinstance(v, list) else v for k, v in e.pop("dr").items()}
         e = {k: tuple(v) if isinstance(v, list) else v for k, v in e.items()}
         p = {k: tuple(v) if isinstance(v, list) else v for k, v in d["ppo"].items()}

@@ -35,6 +35,7 @@ from deploy.observation import build_observation, default_terms, projected_gravi
 from policy_train.config import EnvConfig
 from policy_train.model import TrainModel
 from policy_train.rewards import compute_rewards
+from policy_train.tripod_pose import tripod_pose
 
 __all__ = ["LIFT_VALUES", "PlanPool", "TripodEnv"]
 
@@ -174,6 +175,19 @@ class TripodEnv:
         self._ipos_nominal = m.body_ipos.copy()
         self._fric = b.expand("geom_friction")
         self._feet_geoms = np.array([m.geom(f"{leg}_foot").id for leg in MODEL_LEGS] + [m.geom("floor").id])
+        # level tripod stances in static equilibrium, one per lifted leg (reference starts)
+        self.ref_poses = [tripod_pose(
+            m, li, self.default_pose, self.pool.q0[self.pool.of_leg(li)[0]],
+            cfg.rewards.base_height_target, cfg.reference_margin_m, cfg.kp, cfg.lift_kp)
+            for li in range(4)] if cfg.p_reference_start > 0 else []
+        self.shift_poses = [tripod_pose(
+            m, li, self.default_pose, self.pool.q0[self.pool.of_leg(li)[0]],
+            cfg.rewards.base_height_target, cfg.reference_margin_m, cfg.kp, cfg.lift_kp,
+            lifted=False) for li in range(4)] if self.ref_poses else []
+        w = np.asarray(cfg.lift_leg_weights, dtype=float)
+        if w.shape != (4,) or np.any(w < 0) or w.sum() <= 0:
+            raise ValueError("lift_leg_weights must be 4 non-negative weights, not all zero")
+        self.leg_p = w / w.sum()
         self._init_buffers()
         self._randomize_masses()
         self.reset_all()
@@ -271,15 +285,61 @@ class TripodEnv:
             self.push_timer[ids] = np.inf
         self._fric[np.ix_(ids, self._feet_geoms, [0])] = self.friction[ids, None, None]
         self._sample_commands(ids)
+        if self.ref_poses:
+            ref = rng.random(n) < self.cfg.p_reference_start
+            self._reference_start(ids[ref], yaw[ref])
         self.batch.forward(ids)
         for v in self.episode_sums.values():
             v[ids] = 0.0
+
+    def _reference_start(self, ids: np.ndarray, yaw: np.ndarray) -> None:
+        """Put ``ids`` (just reset on four legs) into a reference state of a leg drawn with
+        ``lift_leg_weights``, rotated by ``yaw`` rad: the level tripod (:attr:`ref_poses`)
+        part-way through the schedule's hold phase, or (``p_reference_shift``) part-way
+        through the shift phase, between the four-leg stance and :attr:`shift_poses` (the
+        body over the other three feet, the leg still down). The lift command and its plan
+        are drawn as for any lift; the leg is lowered back to the four-leg stance it was
+        reset to (hold) or to where it stood when the shift ended (shift)."""
+        if len(ids) == 0:
+            return
+        rng, n = self.rng, len(ids)
+        legs = rng.choice(4, n, p=self.leg_p)
+        self._sample_commands(ids, legs=legs)
+        qp = np.stack([self.ref_poses[li].qpos for li in legs])
+        tg = np.stack([self.ref_poses[li].target for li in legs])
+        sh = rng.random(n) < self.cfg.p_reference_shift
+        alpha = rng.uniform(0.0, 1.0, n)[:, None]
+        # from the noise-free four-leg stance with the feet on the floor (the reset's joint
+        # noise would put interpolated feet up to a centimetre into or above the floor)
+        q4 = np.zeros((n, 19))
+        q4[:, 2], q4[:, 3], q4[:, 7:19] = self.start_height - 0.005, 1.0, self.default_pose
+        sq = np.stack([self.shift_poses[li].qpos for li in legs])
+        stg = np.stack([self.shift_poses[li].target for li in legs])
+        qp[sh] = (1 - alpha[sh]) * q4[sh] + alpha[sh] * sq[sh]
+        qp[sh, 3:7] = (1.0, 0.0, 0.0, 0.0)
+        tg[sh] = (1 - alpha[sh]) * q4[sh, 7:19] + alpha[sh] * stg[sh]
+        c, s = np.cos(yaw), np.sin(yaw)
+        x, y = qp[:, 0].copy(), qp[:, 1].copy()
+        qp[:, 0], qp[:, 1] = c * x - s * y, s * x + c * y
+        qp[:, 3], qp[:, 4:6], qp[:, 6] = np.cos(yaw / 2), 0.0, np.sin(yaw / 2)
+        qp[:, 7:19] += rng.uniform(-1, 1, (n, 12)) * self.cfg.reference_joint_noise
+        qp[:, 2] += 0.003  # the joint noise moves the feet a few mm: start them above the floor
+        self.qpos[ids] = qp
+        self.qvel[ids] = 0.0
+        self.target[ids] = tg
+        self.prev_target[ids] = tg
+        self.ctrl[ids] = tg
+        d = self.lift_dur[ids]
+        self.lift_t[ids] = np.where(sh, alpha[:, 0] * d[:, 0],
+                                    d[:, 0] + d[:, 1] + rng.uniform(0.0, 1.0, n) * d[:, 2])
+        self.lift_latched[ids] = ~sh
+        self.phase[ids] = np.where(sh, 0, 2)
 
     def _sample_commands(self, ids: np.ndarray, legs: np.ndarray | None = None) -> None:
         """New lift / angular-velocity command for ``ids`` (legs: forced leg indices)."""
         cfg, rng, n = self.cfg, self.rng, len(ids)
         if legs is None:
-            legs = rng.integers(0, 4, n)
+            legs = rng.choice(4, n, p=self.leg_p)
             legs[rng.random(n) < cfg.p_no_lift] = -1
         # a leg already lifted must come down first: keep schedules running past the resample
         self.lift_leg[ids] = legs

@@ -67,6 +67,9 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     cfg.num_envs = episodes * len(legs)
     cfg.seed = seed
     cfg.dr.enabled = not nominal
+    # every episode starts on four legs and runs to its end: failures are counted, not ended
+    cfg.p_reference_start = 0.0
+    cfg.terminate_on_contact = False
     cfg.command_resample_s = 1e6
     cfg.episode_s = 1e6  # episodes end with the motion (below), not by time-out
     cfg.action_scale = float(meta["action"]["scale"])

@@ -130,6 +130,8 @@ def compute_rewards(env) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]
     h = env.base_pos[:, 2]
     tilt = np.arccos(np.clip(-env.gravity_b[:, 2], -1.0, 1.0))
     terminated = env.base_touch | (tilt > cfg.fall_tilt) | (h < cfg.fall_height)
+    if cfg.terminate_on_contact:
+        terminated = terminated | env.other_touch | env.lift_touch
 
     lifted = env.lift_leg
     active = (lifted >= 0) & ((env.phase == 2) | (env.phase == 3))

@@ -41,7 +41,9 @@ def test_action_is_delta_target_in_sdk_order():
 
 
 def test_lifted_leg_follows_schedule():
-    e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=4, threads=1))
+    # zero actions let the body sag onto a thigh: keep that episode running here
+    e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=4, threads=1,
+                            terminate_on_contact=False, p_reference_start=0.0))
     e.p_excite = 1.0
     e._sample_commands(np.arange(2), legs=np.array([0, 3]))
     n = int((e.cfg.shift_s + e.cfg.lift_s + e.cfg.hold_s) / e.dt) + 10
@@ -57,6 +59,57 @@ def test_lifted_leg_follows_schedule():
     np.testing.assert_allclose(e.q[np.arange(2)[:, None], j] - e.lift_q_des, e.lift_err, atol=1e-9)
     obs = e.observations()["policy"]
     np.testing.assert_allclose(obs[:, 48], 0.25 * np.array([1, 4]))
+
+
+def test_reference_start_is_a_level_tripod_in_hold():
+    e = TripodEnv(EnvConfig(num_envs=8, plans_per_leg=1, seed=5, threads=1,
+                            p_reference_start=1.0, p_reference_shift=0.0))
+    assert (e.phase == 2).all() and (e.lift_leg >= 0).all() and e.lift_latched.all()
+    tilt = np.arccos(np.clip(-e.gravity_b[:, 2], -1, 1))
+    assert np.all(tilt < 1e-6)
+    np.testing.assert_allclose(e.base_pos[:, 2], e.cfg.rewards.base_height_target + 0.003)
+    for _ in range(5):  # 0.1 s of zero actions: balanced, so still nearly level
+        e.step(np.zeros((8, 12)))
+    tilt = np.arccos(np.clip(-e.gravity_b[:, 2], -1, 1))
+    assert np.all(np.degrees(tilt) < 2.0)
+    assert not e.lift_touch.any() and not e.other_touch.any()
+    # the leg goes back to the four-leg stance it was reset to (q_start is the reset pose)
+    np.testing.assert_allclose(e.lift_q_start[:, 1], np.take_along_axis(
+        e.default_pose.reshape(4, 3)[:, 1][None].repeat(8, 0), e.lift_leg[:, None], 1)[:, 0],
+        atol=e.cfg.dr.init_joint_noise + 1e-9)
+
+
+def test_reference_start_in_the_shift_phase_has_four_feet_down():
+    e = TripodEnv(EnvConfig(num_envs=8, plans_per_leg=1, seed=8, threads=1,
+                            p_reference_start=1.0, p_reference_shift=1.0))
+    assert (e.phase == 0).all() and not e.lift_latched.any()
+    assert np.all((e.lift_t >= 0) & (e.lift_t <= e.cfg.shift_s))
+    z = e.sensordata[:, e.tm.foot_pos + 2]  # foot sites: on the floor or a few mm above
+    assert np.all((z > 0.022 - 0.006) & (z < 0.022 + 0.012))
+    for _ in range(4):  # 80 ms: the feet have settled on the floor, nothing else touches
+        e.step(np.zeros((8, 12)))
+    assert e.foot_touch.all() and not e.other_touch.any()
+
+
+def test_lift_leg_weights_pick_the_lifted_leg():
+    e = TripodEnv(EnvConfig(num_envs=16, plans_per_leg=1, seed=7, threads=1, p_no_lift=0.0,
+                            lift_leg_weights=(0.0, 1.0, 0.0, 0.0)))
+    assert (e.lift_leg == 1).all()  # FR (model index 1), reference starts included
+    with pytest.raises(ValueError, match="lift_leg_weights"):
+        TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, threads=1, lift_leg_weights=(0, 0, 0, 0)))
+
+
+def test_contact_other_than_feet_ends_the_episode():
+    from types import SimpleNamespace
+    e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=6, threads=1,
+                            p_reference_start=0.0))
+    e.step(np.zeros((2, 12)))
+    e.other_touch[:] = [True, False]
+    _, _, term = R.compute_rewards(e)
+    assert term[0] and not term[1]
+    e.cfg = SimpleNamespace(**{**vars(e.cfg), "terminate_on_contact": False})
+    _, _, term = R.compute_rewards(e)
+    assert not term[0]
 
 
 def test_domain_randomisation_applied(env):
