@@ -170,21 +170,100 @@ def cmd_demo(args) -> int:
 
 
 # ----------------------------------------------------------------------------------- bench
+def _free_json(path: Path) -> Path:
+    """Where the free-base rows live beside a held-base rows file or page: <stem>_policy.json."""
+    return path.with_name(path.stem + "_policy.json")
+
+
+def _read_free(path: Path):
+    from sim.table1 import FreeTable
+
+    try:
+        return FreeTable.from_json(path.read_text())
+    except (OSError, ValueError, TypeError, KeyError) as e:
+        raise _Fail(f"cannot read free-base rows from {path}: {e}") from None
+
+
+def _read_held(path: Path):
+    from sim.table1 import rows_from_json
+
+    try:
+        return rows_from_json(path.read_text())
+    except (OSError, ValueError, TypeError) as e:
+        raise _Fail(f"cannot read rows from {path}: {e}") from None
+
+
+def _held_wall_time(page: Path) -> float | None:
+    """The held-base section's wall time on an existing page (kept when only the free-base
+    section is re-run)."""
+    try:
+        text = page.read_text().split("## Free base", 1)[0]
+    except OSError:
+        return None
+    for line in text.splitlines():
+        if line.startswith("Wall time: ") and line.endswith(" s."):
+            try:
+                return float(line[len("Wall time: "):-3])
+            except ValueError:
+                return None
+    return None
+
+
+def _bench_policy(args, t0: float, out: Path):
+    """The free-base table with A2I executed by ``args.policy``; returns (page, stdout text)."""
+    import functools
+
+    from sim.table1 import FreeTable, render_free_section, render_page, run_table1_free
+
+    pol = Path(args.policy)
+    for f in (pol, pol.with_suffix(".json")):
+        if not f.is_file():
+            raise _Fail(f"policy file not found: {f}")
+    try:
+        import onnxruntime  # noqa: F401
+    except ImportError:
+        raise _Fail("--policy needs onnxruntime: pip install onnxruntime") from None
+    from policy_train.policy_motion import load_policy, run_policy_a2i
+
+    try:
+        load_policy(pol)  # fail here, once, rather than in every worker
+    except ValueError as e:
+        raise _Fail(str(e).splitlines()[0]) from None
+    seeds = list(range(args.seeds))
+    legs = args.legs or list(LEGS)
+    _say(f"Table I, free base, A2I by {pol}: {len(seeds)} seeds x {len(legs)} legs x 3 noise "
+         f"levels x 4 motions, {args.workers or 'all'} worker processes")
+    rows, runs = run_table1_free(
+        functools.partial(run_policy_a2i, str(pol)), seeds, legs, workers=args.workers,
+        progress=lambda i, n: _say(f"  simulated {i}/{n} runs ({time.time() - t0:.0f} s)"))
+    free = FreeTable(rows, runs, seeds, str(args.policy), time.time() - t0)
+    write_text_atomic(_free_json(out), free.to_json())
+    held_path = out.with_suffix(".json")
+    held = _read_held(held_path) if held_path.is_file() else None
+    seeds_held = sorted({r.seed for r in held}) if held else []
+    page = render_page(held, seeds_held, _held_wall_time(out), free)
+    return page, render_free_section(free)
+
+
 def cmd_bench(args) -> int:
     try:
-        from sim.table1 import render_markdown, run_table1
+        from sim.table1 import render_page, run_table1
     except ImportError as e:
         raise _Fail(f"the bench needs the simulator: pip install '.[sim]' ({e})") from None
     t0 = time.time()
+    out = Path(args.out)
+    if args.policy and args.from_json:
+        raise _Fail("--policy runs the free-base table; --from-json re-renders saved rows: "
+                    "give one of them")
+    shown = None
     if args.from_json:
-        from sim.table1 import rows_from_json
-
-        try:
-            rows = rows_from_json(Path(args.from_json).read_text())
-        except (OSError, ValueError, TypeError) as e:
-            raise _Fail(f"cannot read rows from {args.from_json}: {e}") from None
+        src = Path(args.from_json)
+        rows = _read_held(src)
         seeds = sorted({r.seed for r in rows})
-        md = render_markdown(rows, seeds)
+        free = _read_free(_free_json(src)) if _free_json(src).is_file() else None
+        md = render_page(rows, seeds, None, free)
+    elif args.policy:
+        md, shown = _bench_policy(args, t0, out)
     else:
         seeds = list(range(args.seeds))
         legs = args.legs or list(LEGS)
@@ -193,14 +272,15 @@ def cmd_bench(args) -> int:
         rows = run_table1(seeds, legs, workers=args.workers,
                           progress=lambda i, n: _say(f"  simulated {i}/{n} motions "
                                                      f"({time.time() - t0:.0f} s)"))
-        md = render_markdown(rows, seeds, time.time() - t0)
-    write_text_atomic(args.out, md)
-    if not args.from_json:
+        # keep the free-base section of an earlier `--policy` run
+        free = _read_free(_free_json(out)) if _free_json(out).is_file() else None
+        md = render_page(rows, seeds, time.time() - t0, free)
         # The raw rows beside the table, so that it can be re-rendered without re-simulating.
-        write_text_atomic(Path(args.out).with_suffix(".json"),
+        write_text_atomic(out.with_suffix(".json"),
                           json.dumps([dataclasses.asdict(r) for r in rows], indent=0))
-    print(md)
-    print(f"wrote {args.out}")
+    write_text_atomic(out, md)
+    print(md if shown is None else shown)
+    print(f"wrote {out}" + (f" and {_free_json(out)}" if args.policy else ""))
     return 0
 
 
@@ -258,12 +338,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("bench", help="the paper's Table I in MuJoCo",
                        description="4 legs x noise {0.006, 0.03, 0.06} deg/s/sqrt(Hz) x motions "
-                                   "{walk, spin, wave, A2I} x seeds; writes a markdown table.")
+                                   "{walk, spin, wave, A2I} x seeds; writes a markdown table. "
+                                   "Base held on the motions' trajectories, or with --policy on "
+                                   "the floor with A2I executed by the tripod policy.")
     s.add_argument("--seeds", type=int, default=3, help="seeds (default 3)")
     s.add_argument("--legs", type=_leg, nargs="*", default=None, help="subset of legs")
     s.add_argument("--workers", type=int, default=None, help="processes (default: all cores)")
     s.add_argument("--from-json", default=None, metavar="ROWS",
-                   help="re-render the table from the rows a previous run saved (no simulation)")
+                   help="re-render the page from the rows a previous run saved (no simulation); "
+                        "the free-base rows are read from ROWS' <stem>_policy.json if present")
+    s.add_argument("--policy", default=None, metavar="ONNX",
+                   help="run the free-base table instead: A2I executed by this tripod policy "
+                        "(its .json beside it), walk/spin open-loop, naive wave; its rows go to "
+                        "<out stem>_policy.json and its section after the held-base table")
     s.add_argument("--out", default="docs/results/table1.md", help="markdown output")
     s.set_defaults(func=cmd_bench)
     return p

@@ -15,6 +15,13 @@ Two pipelines are scored on the same data:
   sub-sample offset; the authors' gates (``SolverConfig.paper_gates()``: kappa < 20,
   lambda_min > 0.015, r > 0.9, plus our uncertainty gates) are evaluated and their verdict
   counted (the estimate is still scored, to compare like with like).
+
+The free-base table (:func:`run_table1_free`, ``a2i-calib bench --policy``) scores the same way
+runs where nothing holds the base (:mod:`sim.free_base_run`): walk and spin are their joint
+trajectories played open-loop on the floor, wave is the naive waving (stand, lift and wave one
+leg, no balance controller), and A2I is executed by the tripod policy (a picklable callable
+``leg -> (MotionRun, RunHealth)`` given by the caller, e.g. ``policy_train.policy_motion``,
+which this module cannot import). Each run also reports how upright the robot stayed.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ from calib.metrics import euler_rotation_error_deg, geodesic_error_deg
 from calib.motions import a2i_motion, spin_motion, walk_motion, wave_motion
 from calib.solver import CalibrationRefused, SolverConfig, solve
 from sim.calibration_run import MotionRun, run_motion
+from sim.free_base_run import RunHealth, run_motion_free
 from sim.sensors import PAPER_GYRO_NOISE_DEG, random_mounting
 
 MOTIONS = ("walk", "spin", "wave", "a2i")
@@ -45,6 +53,7 @@ DURATION = 20.0
 
 # Scoring configuration: no gate may stop an estimate (the gates are evaluated separately).
 _UNGATED = SolverConfig(min_eigenvalue=0.0, max_condition_number=np.inf, min_correlation=0.0,
+                        max_rotation_std_deg=np.inf, max_time_offset_std_s=np.inf,
                         ambiguity_ratio=0.0, edge_margin=0, rotation_method="procrustes")
 _PAPER = dataclasses.replace(_UNGATED, rotation_method="paper")
 
@@ -166,6 +175,91 @@ def run_table1(seeds=(0, 1, 2), legs=LEGS, noises=PAPER_GYRO_NOISE_DEG, workers=
     return rows
 
 
+@dataclass
+class FreeRun:
+    """How one free-base run fared. leg None: a gait scored on every leg; seed None: the
+    policy's A2I run, deterministic, scored with every seed's mountings."""
+
+    motion: str
+    leg: str | None
+    seed: int | None
+    health: RunHealth
+
+    def to_dict(self) -> dict:
+        return {"motion": self.motion, "leg": self.leg, "seed": self.seed,
+                "health": self.health.to_dict()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> FreeRun:
+        return cls(d["motion"], d["leg"], d["seed"], RunHealth.from_dict(d["health"]))
+
+
+@dataclass
+class FreeTable:
+    """The free-base Table I: scored rows, the runs' health, the seeds, the policy file name,
+    wall time (s)."""
+
+    rows: list[Table1Row]
+    runs: list[FreeRun]
+    seeds: list[int]
+    policy: str
+    elapsed_s: float | None = None
+
+    def to_json(self) -> str:
+        return json.dumps({"policy": self.policy, "seeds": list(self.seeds),
+                           "elapsed_s": self.elapsed_s,
+                           "rows": [dataclasses.asdict(r) for r in self.rows],
+                           "runs": [r.to_dict() for r in self.runs]}, indent=0)
+
+    @classmethod
+    def from_json(cls, text: str) -> FreeTable:
+        d = json.loads(text)
+        if not isinstance(d, dict) or "rows" not in d or "runs" not in d:
+            raise ValueError("not a free-base table (expected an object with rows and runs)")
+        return cls([Table1Row(**r) for r in d["rows"]], [FreeRun.from_dict(r) for r in d["runs"]],
+                   [int(s) for s in d["seeds"]], str(d["policy"]), d.get("elapsed_s"))
+
+
+def _free_job(args) -> tuple[list[Table1Row], list[FreeRun]]:
+    motion, seed, leg, legs, noises, seeds, a2i_run = args
+    if motion == "a2i":
+        run, health = a2i_run(leg)
+        rows = [r for s in seeds for r in score_run(run, motion, [leg], noises, s)]
+        return rows, [FreeRun(motion, leg, None, health)]
+    run, health = run_motion_free(_make_motion(motion, seed, leg),
+                                  lifted_leg=leg if motion == "wave" else None)
+    return (score_run(run, motion, legs if leg is None else [leg], noises, seed),
+            [FreeRun(motion, leg, seed, health)])
+
+
+def run_table1_free(a2i_run, seeds=(0, 1, 2), legs=LEGS, noises=PAPER_GYRO_NOISE_DEG,
+                    workers=None, progress=None) -> tuple[list[Table1Row], list[FreeRun]]:
+    """Rows and run health of the free-base study (see the module docstring).
+
+    a2i_run: picklable ``leg -> (MotionRun, RunHealth)`` executing the A2I calibration of
+    ``leg`` (run once per leg; its mountings come from each seed as for the other motions).
+    Same legs, noise levels, seeds, pipelines and scoring as :func:`run_table1`.
+    workers: processes (None: all cores). progress(done, total).
+    """
+    legs, noises, seeds = tuple(legs), tuple(noises), tuple(seeds)
+    jobs = [("a2i", None, leg, legs, noises, seeds, a2i_run) for leg in legs]
+    for seed in seeds:
+        for motion in ("walk", "spin"):
+            jobs.append((motion, seed, None, legs, noises, seeds, None))
+        for leg in legs:
+            jobs.append(("wave", seed, leg, legs, noises, seeds, None))
+    rows: list[Table1Row] = []
+    runs: list[FreeRun] = []
+    workers = workers or os.cpu_count() or 1
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        for i, (r, h) in enumerate(pool.map(_free_job, jobs), 1):
+            rows.extend(r)
+            runs.extend(h)
+            if progress is not None:
+                progress(i, len(jobs))
+    return rows, runs
+
+
 def beats_baselines(rows: list[Table1Row], pipeline: str) -> dict:
     """{(leg, noise): (wins on CN, on CC, on RE)}: A2I's median against every baseline's."""
     out = {}
@@ -187,6 +281,23 @@ def beats_baselines(rows: list[Table1Row], pipeline: str) -> dict:
     return out
 
 
+def beats_paper_a2i(rows: list[Table1Row], pipeline: str) -> dict:
+    """{(leg, noise): (CN lower, CC higher, RE lower)}: A2I's median against the paper's A2I
+    figures (Table I, Gazebo) for the same leg and noise."""
+    out = {}
+    for leg in sorted({r.leg for r in rows}):
+        for noise in sorted({r.noise_deg for r in rows}):
+            sel = [r for r in rows if r.leg == leg and r.noise_deg == noise and r.motion == "a2i"
+                   and r.pipeline == pipeline]
+            p = PAPER_TABLE1.get(leg, {}).get(noise, {}).get("a2i")
+            if not sel or p is None:
+                continue
+            out[(leg, noise)] = (np.median([r.cn for r in sel]) < p[0],
+                                 np.median([r.cc for r in sel]) > p[1],
+                                 np.median([r.re_euler_deg for r in sel]) < p[2])
+    return out
+
+
 def rows_from_json(text: str) -> list[Table1Row]:
     """Rows saved by ``a2i-calib bench`` (the JSON beside the table)."""
     return [Table1Row(**d) for d in json.loads(text)]
@@ -205,59 +316,43 @@ def _fmt(x: float) -> str:
     return f"{x:.3g}" if abs(x) < 100 else f"{x:.0f}"
 
 
-def render_markdown(rows: list[Table1Row], seeds, elapsed_s: float | None = None) -> str:
-    """The result page: per pipeline, per leg and noise, median (worst) of each metric."""
-    out = [
-        "# Table I in MuJoCo: calibration motions compared",
-        "",
-        "Produced by `a2i-calib bench` (`sim/table1.py`); seeds "
-        + ", ".join(str(s) for s in seeds)
-        + f"; foot IMU at {IMU_RATE:.0f} Hz, random mounting per leg and seed (any rotation, "
-        "offset within ±0.2 s); encoders at 500 Hz from 1 kHz physics.",
-        "",
-        ("**Base held.** Until the tripod policy exists, every motion runs with the base *held* "
-        "on the motion's prescribed trajectory (walk: trot with body sway; spin: yawing at "
-        "0.5 rad/s; wave and A²I: still base). The A²I motion is the anti-noise excitation "
-        "(`calib.excitation`, κ(Σ_FF) = 1 planned), played by joint PD (kp 60, kd 2) with "
-        "velocity feed-forward; CN below is of the *executed* motion."),
-        "",
-        ("Cells: median over seeds (worst in brackets). CN: condition number of Σ_FF. CC: trace "
-        "correlation. RE: the paper's Euler-angle error (deg). geo: geodesic rotation error "
-        "(deg). Δt: time-offset error (ms). Paper: the paper's Table I (Gazebo) figures."),
-        "",
-    ]
-    for pipeline in PIPELINES:
-        title = {"paper": "The paper's pipeline (relative FK, S_FF^-1 S_FI rotation, no gates)",
-                 "ours": "This toolkit (base rotation compensated, Procrustes rotation)"}[pipeline]
-        out += [f"## {title}", ""]
-        head = "| leg | noise °/s/√Hz | motion | CN | CC | RE ° | geo ° | Δt ms |"
-        if pipeline == "ours":
-            head += " paper gates pass |"
-        head += " paper CN / CC / RE |"
-        out += [head, "|" + "---|" * (head.count("|") - 1)]
-        for leg in LEGS:
-            for noise in sorted({r.noise_deg for r in rows}):
-                for motion in MOTIONS:
-                    sel = [r for r in rows if r.leg == leg and r.noise_deg == noise
-                           and r.motion == motion and r.pipeline == pipeline]
-                    if not sel:
-                        continue
-                    cn = _agg([r.cn for r in sel])
-                    cc = _agg([-r.cc for r in sel])  # worst = lowest correlation
-                    re = _agg([r.re_euler_deg for r in sel])
-                    geo = _agg([r.geodesic_deg for r in sel])
-                    dt = _agg([r.offset_error_s * 1e3 for r in sel])
-                    line = (f"| {leg} | {noise:g} | {motion} | {_fmt(cn[0])} ({_fmt(cn[1])}) "
-                            f"| {-cc[0]:.4f} ({-cc[1]:.4f}) | {_fmt(re[0])} ({_fmt(re[1])}) "
-                            f"| {_fmt(geo[0])} ({_fmt(geo[1])}) | {_fmt(dt[0])} ({_fmt(dt[1])}) |")
-                    if pipeline == "ours":
-                        line += f" {sum(r.gates_pass for r in sel)}/{len(sel)} |"
-                    p = PAPER_TABLE1.get(leg, {}).get(noise, {}).get(motion)
-                    line += f" {p[0]:g} / {p[1]:g} / {p[2]:g} |" if p else " |"
-                    out.append(line)
-        out.append("")
-    out += ["## Summary (median over legs, noise levels and seeds)", "",
-            "| pipeline | motion | CN | CC | RE ° | geo ° | Δt ms |", "|---|---|---|---|---|---|---|"]
+def _pipeline_title(pipeline: str) -> str:
+    return {"paper": "The paper's pipeline (relative FK, S_FF^-1 S_FI rotation, no gates)",
+            "ours": "This toolkit (base rotation compensated, Procrustes rotation)"}[pipeline]
+
+
+def _metric_table(rows: list[Table1Row], pipeline: str) -> list[str]:
+    """Per leg, noise and motion: median (worst) of each metric, and the paper's figures."""
+    head = "| leg | noise °/s/√Hz | motion | CN | CC | RE ° | geo ° | Δt ms |"
+    if pipeline == "ours":
+        head += " paper gates pass |"
+    head += " paper CN / CC / RE |"
+    out = [head, "|" + "---|" * (head.count("|") - 1)]
+    for leg in LEGS:
+        for noise in sorted({r.noise_deg for r in rows}):
+            for motion in MOTIONS:
+                sel = [r for r in rows if r.leg == leg and r.noise_deg == noise
+                       and r.motion == motion and r.pipeline == pipeline]
+                if not sel:
+                    continue
+                cn = _agg([r.cn for r in sel])
+                cc = _agg([-r.cc for r in sel])  # worst = lowest correlation
+                re = _agg([r.re_euler_deg for r in sel])
+                geo = _agg([r.geodesic_deg for r in sel])
+                dt = _agg([r.offset_error_s * 1e3 for r in sel])
+                line = (f"| {leg} | {noise:g} | {motion} | {_fmt(cn[0])} ({_fmt(cn[1])}) "
+                        f"| {-cc[0]:.4f} ({-cc[1]:.4f}) | {_fmt(re[0])} ({_fmt(re[1])}) "
+                        f"| {_fmt(geo[0])} ({_fmt(geo[1])}) | {_fmt(dt[0])} ({_fmt(dt[1])}) |")
+                if pipeline == "ours":
+                    line += f" {sum(r.gates_pass for r in sel)}/{len(sel)} |"
+                p = PAPER_TABLE1.get(leg, {}).get(noise, {}).get(motion)
+                line += f" {p[0]:g} / {p[1]:g} / {p[2]:g} |" if p else " |"
+                out.append(line)
+    return out
+
+
+def _summary_table(rows: list[Table1Row]) -> list[str]:
+    out = ["| pipeline | motion | CN | CC | RE ° | geo ° | Δt ms |", "|---|---|---|---|---|---|---|"]
     for pipeline in PIPELINES:
         for motion in MOTIONS:
             sel = [r for r in rows if r.pipeline == pipeline and r.motion == motion]
@@ -268,16 +363,164 @@ def render_markdown(rows: list[Table1Row], seeds, elapsed_s: float | None = None
                     f"| {_fmt(np.median([r.re_euler_deg for r in sel]))} "
                     f"| {_fmt(np.median([r.geodesic_deg for r in sel]))} "
                     f"| {_fmt(np.median([r.offset_error_s for r in sel]) * 1e3)} |")
+    return out
+
+
+def _wins_table(rows: list[Table1Row], verdicts=None,
+                what: str = "A²I wins") -> list[str]:
+    """Per pipeline, the (leg, noise) cells where ``verdicts(rows, pipeline)`` (default
+    :func:`beats_baselines`) holds on CN, CC and RE."""
+    verdicts = verdicts or beats_baselines
+    out = [f"| pipeline | cells where {what} on CN | on CC | on RE |", "|---|---|---|---|"]
+    for pipeline in PIPELINES:
+        wins = verdicts(rows, pipeline)
+        n = len(wins)
+        out.append(f"| {pipeline} | {sum(bool(w[0]) for w in wins.values())}/{n} "
+                   f"| {sum(bool(w[1]) for w in wins.values())}/{n} "
+                   f"| {sum(bool(w[2]) for w in wins.values())}/{n} |")
+    return out
+
+
+def render_markdown(rows: list[Table1Row], seeds, elapsed_s: float | None = None) -> str:
+    """The result page: per pipeline, per leg and noise, median (worst) of each metric."""
+    out = [
+        "# Table I in MuJoCo: calibration motions compared",
+        "",
+        "Produced by `a2i-calib bench` (`sim/table1.py`); seeds "
+        + ", ".join(str(s) for s in seeds)
+        + f"; foot IMU at {IMU_RATE:.0f} Hz, random mounting per leg and seed (any rotation, "
+        "offset within ±0.2 s); encoders at 500 Hz from 1 kHz physics.",
+        "",
+        ("**Base held.** In this table every motion runs with the base *held* "
+        "on the motion's prescribed trajectory (walk: trot with body sway; spin: yawing at "
+        "0.5 rad/s; wave and A²I: still base). The A²I motion is the anti-noise excitation "
+        "(`calib.excitation`, κ(Σ_FF) = 1 planned), played by joint PD (kp 60, kd 2) with "
+        "velocity feed-forward; CN below is of the *executed* motion. The free-base table, "
+        "with A²I executed by the tripod policy, is the last section (`a2i-calib bench "
+        "--policy`) when it has been run."),
+        "",
+        ("Cells: median over seeds (worst in brackets). CN: condition number of Σ_FF. CC: trace "
+        "correlation. RE: the paper's Euler-angle error (deg). geo: geodesic rotation error "
+        "(deg). Δt: time-offset error (ms). Paper: the paper's Table I (Gazebo) figures."),
+        "",
+    ]
+    for pipeline in PIPELINES:
+        out += [f"## {_pipeline_title(pipeline)}", ""]
+        out += _metric_table(rows, pipeline)
+        out.append("")
+    out += ["## Summary (median over legs, noise levels and seeds)", ""]
+    out += _summary_table(rows)
     out += ["", "## Does A²I beat every baseline?", "",
             ("Per (leg, noise) cell, on medians over seeds: lower CN, higher CC, lower RE than each "
-            "of walk, spin and wave."), "",
-            "| pipeline | cells where A²I wins on CN | on CC | on RE |", "|---|---|---|---|"]
-    for pipeline in PIPELINES:
-        wins = beats_baselines(rows, pipeline)
-        n = len(wins)
-        out.append(f"| {pipeline} | {sum(w[0] for w in wins.values())}/{n} "
-                   f"| {sum(w[1] for w in wins.values())}/{n} "
-                   f"| {sum(w[2] for w in wins.values())}/{n} |")
+            "of walk, spin and wave."), ""]
+    out += _wins_table(rows)
     if elapsed_s is not None:
         out += ["", f"Wall time: {elapsed_s:.0f} s."]
     return "\n".join(out) + "\n"
+
+
+def _yes(b) -> str:
+    return "-" if b is None else ("yes" if b else "no")
+
+
+def _health_table(runs: list[FreeRun]) -> list[str]:
+    out = [("| motion | leg | seed | max tilt ° | tilt RMS ° | min base z m "
+            "| lifted foot touched | lowest lifted foot m | other bodies on the floor | fell |"),
+           "|---|---|---|---|---|---|---|---|---|---|"]
+    order = {m: i for i, m in enumerate(MOTIONS)}
+    for r in sorted(runs, key=lambda r: (order.get(r.motion, 9), r.leg or "",
+                                         -1 if r.seed is None else r.seed)):
+        h = r.health
+        low = "-" if not np.isfinite(h.lifted_foot_min_z) else f"{h.lifted_foot_min_z:.3f}"
+        out.append(f"| {r.motion} | {r.leg or 'all'} | {'all' if r.seed is None else r.seed} "
+                   f"| {h.max_tilt_deg:.1f} | {h.tilt_rms_deg:.1f} | {h.min_base_z:.3f} "
+                   f"| {_yes(h.lifted_foot_touched)} | {low} "
+                   f"| {', '.join(h.body_contacts) or 'none'} | {_yes(h.fell)} |")
+    return out
+
+
+def _verdicts(rows: list[Table1Row]) -> list[str]:
+    """Per pipeline, leg and noise: the verdicts of beats_baselines and beats_paper_a2i."""
+    out = [("| pipeline | leg | noise °/s/√Hz | A²I beats every baseline on CN / CC / RE "
+            "| beats the paper's A²I on CN / CC / RE |"), "|---|---|---|---|---|"]
+    for pipeline in PIPELINES:
+        base = beats_baselines(rows, pipeline)
+        paper = beats_paper_a2i(rows, pipeline)
+        for (leg, noise), w in sorted(base.items()):
+            p = paper.get((leg, noise))
+            ps = " / ".join(_yes(bool(x)) for x in p) if p is not None else "-"
+            out.append(f"| {pipeline} | {leg} | {noise:g} | "
+                       + " / ".join(_yes(bool(x)) for x in w) + f" | {ps} |")
+    return out
+
+
+def render_free_section(table: FreeTable) -> str:
+    """The free-base section of the page (markdown, level-2 heading first)."""
+    rows = table.rows
+    pol = [r for r in table.runs if r.motion == "a2i"]
+    n_touch = sum(bool(r.health.lifted_foot_touched) for r in pol)
+    n_fell = sum(r.health.fell for r in pol)
+    n_body = sum(bool(r.health.body_contacts) for r in pol)
+    tilt = max((r.health.max_tilt_deg for r in pol), default=float("nan"))
+    out = [
+        "## Free base: A²I executed by the tripod policy",
+        "",
+        (f"Produced by `a2i-calib bench --policy {table.policy}` (`sim/table1.py`, "
+         "`sim/free_base_run.py`, `policy_train/policy_motion.py`); seeds "
+         + ", ".join(str(s) for s in table.seeds)
+         + "; the same legs, noise levels, mountings, pipelines and scoring as above."),
+        "",
+        ("**Nothing holds the base.** The Go2 stands on the floor (MuJoCo, free base, 1 kHz "
+         "physics, the motor PD law every step) and the base goes where the contact forces "
+         "take it. *A²I*: the tripod policy (ONNX Runtime, 50 Hz, the policy JSON's observation, "
+         "action and gains) holds the body on three legs while the lift schedule of its JSON "
+         "drives the lifted leg (shift, lift, hold, the anti-noise excitation, lower); the robot "
+         "starts standing at the policy's default pose, the policy stands 1 s, then the lift "
+         "command; the excitation phase is what is recorded and scored (it does not depend on "
+         "the seed: one run per leg, scored with each seed's mountings). *walk*, *spin*: the "
+         "gaits' joint trajectories played open-loop (PD kp 60, kd 2, velocity feed-forward) "
+         "after 1 s of standing. *wave*: the naive single-foot waving: from the stand pose, "
+         "the leg is lifted (1 s blend) and waved with the wave motion's joint trajectory, no "
+         "balance controller."),
+        "",
+        (f"**Did the policy's A²I stay upright?** {len(pol)} policy runs: max tilt "
+         f"{tilt:.1f}°; the lifted foot touched the floor during hold or excitation in "
+         f"{n_touch}; another body than a foot touched the floor in {n_body}; fell in "
+         f"{n_fell}. Watched: the A²I runs over hold and excitation, the other motions over "
+         "the recorded motion."),
+        "",
+        "### How the robot fared",
+        "",
+    ]
+    out += _health_table(table.runs)
+    for pipeline in PIPELINES:
+        out += ["", f"### {_pipeline_title(pipeline)}", ""]
+        out += _metric_table(rows, pipeline)
+    out += ["", "### Summary (median over legs, noise levels and seeds)", ""]
+    out += _summary_table(rows)
+    out += ["", "### Does A²I beat every baseline, and the paper's A²I?", "",
+            ("Per (leg, noise) cell, on medians over seeds: lower CN, higher CC, lower RE than "
+             "each of walk, spin and wave; and than the paper's A²I figures (its CC is "
+             "rounded to 0.99)."), ""]
+    out += _wins_table(rows)
+    out.append("")
+    out += _wins_table(rows, beats_paper_a2i, "A²I beats the paper's A²I")
+    out.append("")
+    out += _verdicts(rows)
+    if table.elapsed_s is not None:
+        out += ["", f"Wall time: {table.elapsed_s:.0f} s."]
+    return "\n".join(out) + "\n"
+
+
+def render_page(held_rows: list[Table1Row] | None, held_seeds=(), held_elapsed_s=None,
+                free: FreeTable | None = None) -> str:
+    """The whole page: the held-base table (:func:`render_markdown`) and, when given, the
+    free-base section after it."""
+    if held_rows:
+        page = render_markdown(held_rows, held_seeds, held_elapsed_s)
+    else:
+        page = ("# Table I in MuJoCo: calibration motions compared\n\n"
+                "(No held-base rows: run `a2i-calib bench` for them.)\n")
+    if free is not None:
+        page += "\n" + render_free_section(free)
+    return page

@@ -1,0 +1,195 @@
+"""The A2I calibration of one leg executed by the tripod policy on the free-base Go2, recorded as
+:func:`sim.calibration_run.run_motion` records a motion (for the free-base Table I,
+:func:`sim.table1.run_table1_free`).
+
+The policy runs as on board (``deploy``'s TRIPOD / CALIBRATE states), on the simulator of
+:mod:`sim.go2` (free base on the floor, the motor PD law every physics step, 1 kHz):
+
+* the robot starts standing at the policy's ``default_pose`` (feet on the floor); the policy
+  runs from the first tick with no lift command for ``settle_s`` s, its target starting at the
+  joints' positions;
+* every ``control_dt`` (50 Hz) the observation is built by :func:`deploy.observation.
+  build_observation` from the JSON's terms (body gyro, projected gravity, joints in SDK order,
+  previous raw actions, zero commands, the JSON's ``lift_command`` value while the schedule
+  runs; ``base_lin_vel`` zero-filled as its ``source`` says), ONNX Runtime gives the actions,
+  ``target += scale * clip(a)`` clamped to the soft limits; the nine other joints get that
+  target with the JSON's kp / kd;
+* after ``settle_s`` the lift command: :class:`deploy.lift_schedule.LiftSchedule` from the
+  JSON (shift, lift, hold, excite, lower); while it gives targets the lifted leg's three motors
+  get its ``q_des`` / ``dq_des`` with its own kp / kd, evaluated at every physics step (as the
+  training environment does at each substep); ``q_start`` is latched at the first step of
+  ``lift``; when the schedule is done the policy's target of the leg restarts from the leg's
+  position and the lift command is cleared (as in training and deploy).
+
+Recorded: the excitation phase only (what deploy's SOLVE calibrates from). Watched for
+:class:`sim.free_base_run.RunHealth`: hold and excitation (tilt, lifted-foot touchdowns,
+body contacts), and the whole run for falls.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from calib.joints import check_leg, model_indices, model_to_sdk, sdk_indices, sdk_to_model
+from deploy.lift_schedule import PHASES, blend_targets
+from deploy.observation import build_observation, projected_gravity
+from deploy.policy import PolicyMeta, PolicyRunner
+from sim.calibration_run import MotionRun
+from sim.free_base_run import (
+    FALL_HEIGHT,
+    FALL_TILT,
+    HealthTracker,
+    RunHealth,
+    RunRecorder,
+    free_base_sim,
+)
+from sim.sensors import BodyImuModel, EncoderModel
+
+__all__ = ["load_policy", "run_policy_a2i"]
+
+_EXCITE = PHASES.index("excite")
+_DONE = PHASES.index("done")
+
+
+def load_policy(onnx_path) -> PolicyRunner:
+    """The on-board policy runner (:class:`deploy.policy.PolicyRunner`: ONNX Runtime on one
+    thread, the ``delta_target`` action state) of ``<name>.onnx`` and the ``<name>.json``
+    beside it. ValueError (one line) on a missing or malformed file; ImportError without
+    onnxruntime."""
+    p = Path(onnx_path)
+    if not p.is_file():
+        raise ValueError(f"policy file not found: {p}")
+    return PolicyRunner(PolicyMeta.load(p.with_suffix(".json")))
+
+
+def run_policy_a2i(
+    policy,
+    leg: str,
+    *,
+    settle_s: float = 1.0,
+    periods: int | None = None,
+    after_s: float = 0.5,
+    timestep: float = 0.001,
+    record_every: int = 2,
+    encoder: EncoderModel | None = None,
+    body_imu: BodyImuModel | None = None,
+    progress=None,
+) -> tuple[MotionRun, RunHealth]:
+    """The A2I calibration of ``leg`` by the tripod policy on the free-base simulated Go2.
+
+    policy: a :class:`deploy.policy.PolicyRunner` or the ``.onnx`` path (its ``.json`` beside
+    it).
+    settle_s: s of policy standing before the lift command. periods: excitation periods
+    (None: the JSON's ``lift_schedule.periods``; fewer gives a shorter run, for tests).
+    after_s: s simulated after the schedule ends (watched for falls only). timestep: physics
+    step, s; record_every: physics steps per recorded sample (2 at 1 kHz = 500 Hz encoders).
+
+    Returns the :class:`MotionRun` of the excitation phase (sim-time stamps; motion name
+    ``a2i_<leg>``) and the :class:`RunHealth` of hold + excitation (``fell`` covers the whole
+    run). progress(fraction): optional, about 20 calls.
+    """
+    leg = check_leg(leg)
+    if record_every < 1:
+        raise ValueError(f"record_every must be >= 1, got {record_every}")
+    if not (settle_s >= 0 and after_s >= 0):
+        raise ValueError("settle_s and after_s must be >= 0 s")
+    runner = policy if isinstance(policy, PolicyRunner) else load_policy(policy)
+    pb = runner.meta
+    sched = pb.schedule if periods is None else dataclasses.replace(pb.schedule,
+                                                                    periods=int(periods))
+    n_ctrl = round(pb.control_dt / timestep)
+    if n_ctrl < 1 or abs(n_ctrl * timestep - pb.control_dt) > 1e-9:
+        raise ValueError(f"control_dt {pb.control_dt} s is not a multiple of the "
+                         f"physics step {timestep} s")
+    plan = sched.plan(leg)
+    dur = sched.durations(leg)
+    ends = np.cumsum(dur)
+    lift_value = pb.lift_value(leg)
+    none_value = pb.lift_value(None)
+    idx_m = model_indices(leg)
+    idx_s = sdk_indices(leg)
+
+    sim = free_base_sim(timestep, sdk_to_model(pb.default_pose))
+    # the lift command comes on a policy tick, as on board
+    n_settle = round(settle_s / pb.control_dt) * n_ctrl
+    n_total = n_settle + int(np.ceil((ends[-1] + after_s) / timestep))
+    n_exc = int(np.ceil(dur[3] / timestep)) + 1
+    rec = RunRecorder(n_exc // record_every + 2)
+    health = HealthTracker(leg)
+    kp_m, kd_m = sdk_to_model(pb.kp), sdk_to_model(pb.kd)
+    runner.reset(model_to_sdk(sim.q))  # the target starts at the joints (deploy, training)
+    zeros3 = np.zeros(3)
+    lift_on = False
+    q_start = None
+    sched_q = sched_dq = sched_phase = None  # per physics step from the latch on
+    k_latch = 0
+    fell = False
+    phase = -1
+    q_cmd = sdk_to_model(runner.target)
+    dq_cmd = np.zeros(12)
+    kp_c, kd_c = kp_m.copy(), kd_m.copy()
+    for k in range(n_total):
+        t_lift = (k - n_settle) * timestep  # s since the lift command (< 0: settling)
+        if t_lift >= 0:
+            phase = int((t_lift >= ends - 1e-9).sum())
+            if phase >= 1 and q_start is None:
+                # latch at the first step of lift, tabulate the schedule from here on
+                q_start = sim.q[idx_m]
+                k_latch = k
+                tt = (np.arange(k, n_total) - n_settle) * timestep
+                te = tt - dur[:3].sum()
+                sched_q, sched_dq, sched_phase = blend_targets(
+                    tt, dur, q_start[None], plan.q0[None], plan.positions(te),
+                    plan.velocities(te))
+            if sched_phase is not None:
+                phase = int(sched_phase[k - k_latch])
+        if k % n_ctrl == 0:
+            if phase == _DONE and lift_on:
+                # hand-back: the leg's policy target restarts from where the leg is
+                runner.target[idx_s] = model_to_sdk(sim.q)[idx_s]
+            lift_on = 0 <= phase < _DONE
+            signals = {
+                "base_lin_vel": zeros3,
+                "base_ang_vel": sim.base_ang_vel,
+                "projected_gravity": projected_gravity(sim.base_quat_wxyz),
+                "joint_pos": sim.q_sdk,
+                "joint_vel": sim.dq_sdk,
+                "previous_actions": runner.prev_actions,
+                "commands": zeros3,
+                "lift_command": lift_value if lift_on else none_value,
+            }
+            obs = build_observation(pb.observation, signals)
+            q_cmd = sdk_to_model(runner.step(runner.act(obs)))
+            dq_cmd = np.zeros(12)
+            kp_c, kd_c = kp_m.copy(), kd_m.copy()
+        if sched_phase is not None and 1 <= phase <= 4:
+            j = k - k_latch
+            q_cmd = q_cmd.copy()
+            dq_cmd = dq_cmd.copy()
+            q_cmd[idx_m] = sched_q[j]
+            dq_cmd[idx_m] = sched_dq[j]
+            kp_c[idx_m] = sched.kp
+            kd_c[idx_m] = sched.kd
+        elif phase == _DONE:
+            kp_c[idx_m], kd_c[idx_m] = kp_m[idx_m], kd_m[idx_m]
+        sim.set_command(q_cmd, dq_cmd, kp_c, kd_c, 0.0)
+        sim.step()
+        # the phase of the state reached after this step
+        t_next = t_lift + timestep
+        ph_next = int((t_next >= ends - 1e-9).sum()) if t_next >= 0 else -1
+        if ph_next in (2, 3):
+            health.update(sim)
+        if ph_next == _EXCITE and (k + 1 - n_settle) % record_every == 0:
+            rec.record(sim, q_cmd)
+        if (k + 1) % 10 == 0:
+            fell |= sim.base_tilt > FALL_TILT or sim.base_pos[2] < FALL_HEIGHT
+        if progress is not None and k % max(1, n_total // 20) == 0:
+            progress(k / n_total)
+    if progress is not None:
+        progress(1.0)
+    h = health.result()
+    h = dataclasses.replace(h, fell=h.fell or bool(fell))
+    return rec.finish(f"a2i_{leg}", encoder, body_imu), h

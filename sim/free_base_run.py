@@ -1,0 +1,257 @@
+"""Calibration motions on a *free* base standing on the floor, recorded as :mod:`sim.calibration_run`
+records them.
+
+:func:`sim.calibration_run.run_motion` holds the base on the motion's prescribed trajectory.
+Here nothing holds it: the Go2 stands on the floor (``SimConfig(base="free", floor=True)``),
+the joints follow the motion's trajectory open-loop under the motor PD law (every physics step,
+velocity feed-forward), and the base goes where the contact forces take it. That is how the
+paper's baselines behave on a robot without a balance controller: walk and spin as open-loop
+gaits, wave as the naive single-foot waving.
+
+Sequence: reset standing (stand pose, feet on the floor), hold the stand pose ``settle_s``,
+blend (quintic, ``blend_s``) to the motion's first pose, then play the motion; only the motion
+is recorded. What is recorded is exactly :func:`~sim.calibration_run.run_motion`'s record
+(encoders quantised, body gyro, true foot angular velocity and specific force, every
+``record_every`` physics steps), plus a :class:`RunHealth`: how upright the robot stayed.
+
+:class:`RunRecorder` and :class:`HealthTracker` are the two pieces, public so that other
+drivers of a free-base :class:`~sim.go2.Go2Sim` (the tripod policy, ``policy_train``) record
+the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calib.joints import MODEL_LEGS, STAND_POSE_LEG, check_leg, full_pose, model_to_sdk
+from calib.motions import Motion
+from sim.calibration_run import TRACKING_KD, TRACKING_KP, MotionRun
+from sim.go2 import Go2Sim, SimConfig, build_model_for
+from sim.sensors import BodyImuModel, EncoderModel
+
+__all__ = [
+    "FALL_HEIGHT",
+    "FALL_TILT",
+    "HealthTracker",
+    "RunHealth",
+    "RunRecorder",
+    "free_base_sim",
+    "run_motion_free",
+]
+
+FALL_TILT = 1.0
+"""Base tilt beyond which the robot counts as fallen, rad (the tripod training's threshold)."""
+FALL_HEIGHT = 0.12
+"""Base height under which the robot counts as fallen, m (the tripod training's threshold)."""
+
+
+@dataclass
+class RunHealth:
+    """How the robot fared over the watched part of a free-base run.
+
+    max_tilt_deg / tilt_rms_deg: angle of the base z axis from the vertical, deg.
+    min_base_z / final_base_z: height of the base origin, m. body_contacts: bodies other than a
+    foot sphere that touched the floor (sorted). lifted_leg: the leg that should stay in the air
+    (None for gaits); lifted_foot_touched: whether its foot touched the floor (None without a
+    lifted leg); lifted_foot_min_z: lowest height of its foot centre, m (NaN without one).
+    fell: tilt beyond :data:`FALL_TILT`, base below :data:`FALL_HEIGHT` or the base body on the
+    floor. duration_s: watched time, s.
+    """
+
+    max_tilt_deg: float
+    tilt_rms_deg: float
+    min_base_z: float
+    final_base_z: float
+    body_contacts: tuple[str, ...]
+    lifted_leg: str | None
+    lifted_foot_touched: bool | None
+    lifted_foot_min_z: float
+    fell: bool
+    duration_s: float
+
+    def to_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["body_contacts"] = list(self.body_contacts)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RunHealth:
+        d = dict(d)
+        d["body_contacts"] = tuple(d["body_contacts"])
+        return cls(**d)
+
+
+class HealthTracker:
+    """Accumulates :class:`RunHealth` from a free-base :class:`Go2Sim`, one :meth:`update` per
+    watched sample."""
+
+    def __init__(self, lifted_leg: str | None = None):
+        self.lifted_leg = None if lifted_leg is None else check_leg(lifted_leg)
+        self._li = None if lifted_leg is None else MODEL_LEGS.index(self.lifted_leg)
+        self._n = 0
+        self._tilt_max = 0.0
+        self._tilt_sq = 0.0
+        self._z_min = np.inf
+        self._z_last = np.nan
+        self._bodies: set[str] = set()
+        self._touched = False
+        self._foot_min = np.inf
+        self._t0: float | None = None
+        self._t1 = 0.0
+
+    def update(self, sim: Go2Sim) -> None:
+        tilt = sim.base_tilt
+        z = float(sim.base_pos[2])
+        self._n += 1
+        self._tilt_max = max(self._tilt_max, tilt)
+        self._tilt_sq += tilt * tilt
+        self._z_min = min(self._z_min, z)
+        self._z_last = z
+        self._bodies.update(sim.body_contacts())
+        if self._li is not None:
+            self._touched |= bool(sim.foot_contact_forces[self._li] > 0.0)
+            self._foot_min = min(self._foot_min, float(sim.foot_positions[self._li, 2]))
+        if self._t0 is None:
+            self._t0 = sim.time
+        self._t1 = sim.time
+
+    def result(self) -> RunHealth:
+        if self._n == 0:
+            raise ValueError("no sample was watched")
+        fell = (self._tilt_max > FALL_TILT or self._z_min < FALL_HEIGHT
+                or "base" in self._bodies)
+        return RunHealth(
+            float(np.degrees(self._tilt_max)), float(np.degrees(np.sqrt(self._tilt_sq / self._n))),
+            float(self._z_min), float(self._z_last), tuple(sorted(self._bodies)),
+            self.lifted_leg, None if self._li is None else bool(self._touched),
+            float(self._foot_min) if self._li is not None else float("nan"), bool(fell),
+            float(self._t1 - (self._t0 or 0.0)))
+
+
+class RunRecorder:
+    """What :func:`sim.calibration_run.run_motion` records, from any driver of a :class:`Go2Sim`:
+    call :meth:`record` after the physics steps to record, then :meth:`finish`."""
+
+    def __init__(self, capacity: int):
+        if capacity < 2:
+            raise ValueError(f"capacity must be >= 2 samples, got {capacity}")
+        self.n = 0
+        self.t = np.empty(capacity)
+        self.q = np.empty((capacity, 12))
+        self.dq = np.empty((capacity, 12))
+        self.w = np.empty((capacity, 3))
+        self.sf = np.empty((capacity, 3))
+        self.fw = np.empty((4, capacity, 3))
+        self.fsf = np.empty((4, capacity, 3))
+        self.q_cmd = np.empty((capacity, 12))
+
+    def record(self, sim: Go2Sim, q_cmd: np.ndarray) -> None:
+        """One sample of the truth at ``sim.time``; q_cmd: (12,) model order, the commanded joint
+        positions (for the tracking RMSE), rad."""
+        i = self.n
+        if i >= len(self.t):
+            raise ValueError("RunRecorder is full")
+        self.t[i] = sim.time
+        self.q[i] = sim.q
+        self.dq[i] = sim.dq
+        self.w[i] = sim.base_ang_vel
+        self.sf[i] = sim.base_specific_force
+        self.fw[:, i] = sim.foot_angular_velocities()
+        self.fsf[:, i] = sim.foot_specific_forces()
+        self.q_cmd[i] = q_cmd
+        self.n = i + 1
+
+    def finish(self, name: str, encoder: EncoderModel | None = None,
+               body_imu: BodyImuModel | None = None) -> MotionRun:
+        """The :class:`MotionRun` of the recorded samples (encoders and body gyro measured)."""
+        n = self.n
+        if n < 2:
+            raise ValueError("fewer than 2 samples recorded")
+        q_meas, dq_meas = (encoder or EncoderModel()).measure(self.q[:n], self.dq[:n])
+        gyro = (body_imu or BodyImuModel()).measure(self.w[:n], self.sf[:n])[0]
+        rmse = np.sqrt(np.mean((self.q[:n] - self.q_cmd[:n]) ** 2, axis=0))
+        return MotionRun(name, self.t[:n].copy(), model_to_sdk(q_meas), model_to_sdk(dq_meas),
+                         gyro, self.fw[:, :n].copy(), self.fsf[:, :n].copy(), rmse)
+
+
+def free_base_sim(timestep: float = 0.001, q0=None) -> Go2Sim:
+    """A :class:`Go2Sim` on the floor, free base, reset with its joints at ``q0`` ((12,) model
+    order, rad; default the stand pose) and the lowest foot touching the floor."""
+    cfg = SimConfig(base="free", floor=True, timestep=timestep)
+    sim = Go2Sim(cfg, model=build_model_for(cfg))
+    sim.reset(q=q0)
+    return sim
+
+
+def _quintic(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    x = np.clip(x, 0.0, 1.0)
+    return x**3 * (10 - 15 * x + 6 * x**2), 30 * x**2 * (1 - x) ** 2
+
+
+def run_motion_free(
+    motion: Motion,
+    *,
+    lifted_leg: str | None = None,
+    settle_s: float = 1.0,
+    blend_s: float = 1.0,
+    timestep: float = 0.001,
+    record_every: int = 2,
+    kp: float = TRACKING_KP,
+    kd: float = TRACKING_KD,
+    encoder: EncoderModel | None = None,
+    body_imu: BodyImuModel | None = None,
+    progress=None,
+) -> tuple[MotionRun, RunHealth]:
+    """Play ``motion``'s joint trajectory open-loop on the free-base Go2 standing on the floor.
+
+    The prescribed base of ``motion`` is ignored (nothing holds the base). The robot starts in
+    the stand pose, holds it ``settle_s`` s, blends to ``motion.q[0]`` over ``blend_s`` s
+    (skipped when the pose is already there), then plays the motion (PD ``kp`` N m/rad, ``kd``
+    N m s/rad, velocity feed-forward, every physics step of ``timestep`` s). lifted_leg: the leg
+    the motion keeps in the air (wave), watched for touchdowns. Returns the recorded
+    :class:`MotionRun` (the motion part only, stamped in sim time) and the :class:`RunHealth`
+    over it. progress(fraction): optional, about 20 calls.
+    """
+    if record_every < 1:
+        raise ValueError(f"record_every must be >= 1, got {record_every}")
+    if not (settle_s >= 0 and blend_s >= 0):
+        raise ValueError("settle_s and blend_s must be >= 0 s")
+    stand = full_pose(STAND_POSE_LEG, order="model")
+    sim = free_base_sim(timestep, stand)
+    zeros = np.zeros(12)
+    kp_v, kd_v = np.full(12, float(kp)), np.full(12, float(kd))
+
+    sim.set_command(stand, zeros, kp_v, kd_v, zeros)
+    sim.run(round(settle_s / timestep))
+    q_first = motion.q[0]
+    nb = round(blend_s / timestep) if np.max(np.abs(q_first - stand)) > 1e-6 else 0
+    for k in range(nb):
+        w, dw = _quintic(np.array((k + 1) / nb))
+        sim.set_command(stand + w * (q_first - stand), dw / blend_s * (q_first - stand),
+                        kp_v, kd_v, zeros)
+        sim.step()
+
+    tm = motion.t - motion.t[0]
+    n = int(np.floor(tm[-1] / timestep + 1e-9))
+    t_cmd = np.arange(n) * timestep
+    q_cmd = np.stack([np.interp(t_cmd, tm, motion.q[:, j]) for j in range(12)], axis=1)
+    dq_cmd = np.stack([np.interp(t_cmd, tm, motion.dq[:, j]) for j in range(12)], axis=1)
+    m = n // record_every
+    rec = RunRecorder(m)
+    health = HealthTracker(lifted_leg)
+    for k in range(m * record_every):
+        sim.set_command(q_cmd[k], dq_cmd[k], kp_v, kd_v, zeros)
+        sim.step()
+        if (k + 1) % record_every:
+            continue
+        # the command that the state just recorded was tracking
+        rec.record(sim, q_cmd[min(k + 1, n - 1)])
+        health.update(sim)
+        i = rec.n - 1
+        if progress is not None and i % max(1, m // 20) == 0:
+            progress(i / m)
+    if progress is not None:
+        progress(1.0)
+    return rec.finish(motion.name, encoder, body_imu), health.result()

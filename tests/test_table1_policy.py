@@ -1,0 +1,172 @@
+"""Free-base Table I: the policy-driven A2I run, the open-loop free-base runner, their records
+(the same MotionRun as the held-base table), scoring, and the page/JSON round trip."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco")
+pytest.importorskip("onnxruntime")
+
+from calib.joints import LEGS
+from calib.kinematics import LegKinematics
+from calib.motions import walk_motion, wave_motion
+from cli.calib import main
+from policy_train.policy_motion import load_policy, run_policy_a2i
+from sim.free_base_run import RunHealth, run_motion_free
+from sim.table1 import (
+    FreeRun,
+    FreeTable,
+    Table1Row,
+    beats_paper_a2i,
+    render_page,
+    score_run,
+)
+
+POLICY = Path(__file__).resolve().parents[1] / "policies" / "tripod_go2_v1.onnx"
+SETTLE = 0.4
+
+
+@pytest.fixture(scope="module")
+def policy_run():
+    if not POLICY.is_file():
+        pytest.skip("no shipped policy")
+    pb = load_policy(POLICY)
+    run, health = run_policy_a2i(pb, "FL", settle_s=SETTLE, periods=1, after_s=0.0)
+    return pb, run, health
+
+
+@pytest.fixture(scope="module")
+def walk_run():
+    return run_motion_free(walk_motion(5.0, 200.0, 0), settle_s=0.3)
+
+
+def _check_shapes(run, dt=0.002):
+    n = len(run.t)
+    assert n > 100
+    assert run.q.shape == (n, 12) and run.dq.shape == (n, 12)
+    assert run.base_gyro.shape == (n, 3)
+    assert run.foot_omega.shape == (4, n, 3) and run.foot_sf.shape == (4, n, 3)
+    assert run.tracking_rmse.shape == (12,)
+    np.testing.assert_allclose(np.diff(run.t), dt, atol=1e-9)
+    for a in (run.q, run.dq, run.base_gyro, run.foot_omega, run.foot_sf):
+        assert np.all(np.isfinite(a))
+
+
+def _check_foot_truth(run, legs=LEGS):
+    """The recorded foot gyro truth (MuJoCo's sensor) equals forward kinematics of the
+    recorded joints plus the recorded body gyro, leg by leg (so no leg or frame is swapped)."""
+    for i, leg in enumerate(LEGS):
+        if leg not in legs:
+            continue
+        q, dq = run.leg_joints(leg)
+        fk = LegKinematics.from_urdf(leg=leg).foot_angular_velocity(q, dq, run.base_gyro)
+        truth = run.foot_omega[i]
+        scale = np.sqrt(np.mean(truth**2))
+        assert scale > 0.05, leg
+        assert np.sqrt(np.mean((fk - truth) ** 2)) < 0.01 * scale, leg
+
+
+def test_policy_run_records_the_excitation_on_the_floor(policy_run):
+    pb, run, health = policy_run
+    _check_shapes(run)
+    sched = dataclasses.replace(pb.meta.schedule, periods=1)
+    d = sched.durations("FL")
+    # recorded: the excitation phase, stamped in sim time after settle + shift + lift + hold
+    assert run.t[0] == pytest.approx(SETTLE + d[:3].sum(), abs=0.005)
+    assert run.t[-1] - run.t[0] == pytest.approx(d[3], abs=0.005)
+    assert run.motion_name == "a2i_FL"
+    # standing on the floor, not held up and not lying on it
+    assert 0.15 < health.min_base_z < 0.45 and 0.15 < health.final_base_z < 0.45
+    assert health.lifted_leg == "FL" and isinstance(health.lifted_foot_touched, bool)
+    assert health.duration_s == pytest.approx(d[2] + d[3], abs=0.01)
+    # the lifted leg follows the schedule's trajectory (its own PD, not the policy)
+    assert np.all(run.tracking_rmse[:3] < 0.1)
+
+
+def test_policy_run_foot_truth_is_the_simulators(policy_run):
+    _check_foot_truth(policy_run[1], legs=("FL",))
+
+
+def test_score_run_works_on_the_policy_run(policy_run):
+    rows = score_run(policy_run[1], "a2i", ["FL"], [0.03], 0)
+    assert [(r.pipeline, r.motion, r.leg) for r in rows] == [("paper", "a2i", "FL"),
+                                                            ("ours", "a2i", "FL")]
+    for r in rows:
+        assert np.isfinite([r.cn, r.cc, r.re_euler_deg, r.offset_error_s]).all()
+        assert r.cn >= 1.0
+    ours = rows[1]
+    assert ours.geodesic_deg < 1.0 and ours.offset_error_s < 1e-3
+
+
+def test_open_loop_walk_on_the_floor(walk_run):
+    run, health = walk_run
+    _check_shapes(run)
+    # only the motion is recorded, after the settling
+    assert run.t[0] == pytest.approx(0.3 + 0.002, abs=1e-6)
+    assert run.t[-1] == pytest.approx(0.3 + 5.0, abs=0.003)
+    assert 0.15 < health.min_base_z < 0.45
+    assert health.lifted_leg is None and health.lifted_foot_touched is None
+    assert np.isnan(health.lifted_foot_min_z)
+    _check_foot_truth(run)
+    rows = score_run(run, "walk", ["RR"], [0.006], 1)
+    assert len(rows) == 2 and all(np.isfinite(r.re_euler_deg) for r in rows)
+
+
+def test_naive_wave_watches_the_lifted_foot():
+    run, health = run_motion_free(wave_motion("RL", 3.0, 200.0, 0, ramp=0.5), lifted_leg="RL",
+                                  settle_s=0.2, blend_s=0.5)
+    assert run.t[0] == pytest.approx(0.7 + 0.002, abs=1e-6)
+    assert health.lifted_leg == "RL" and isinstance(health.lifted_foot_touched, bool)
+    assert np.isfinite(health.lifted_foot_min_z)
+    with pytest.raises(ValueError):
+        run_motion_free(wave_motion("RL", 3.0, 200.0, 0, ramp=0.5), record_every=0)
+
+
+def test_missing_policy_is_one_line_error(tmp_path, capsys):
+    with pytest.raises(ValueError, match="not found"):
+        load_policy(tmp_path / "none.onnx")
+    assert main(["bench", "--policy", str(tmp_path / "none.onnx"),
+                 "--out", str(tmp_path / "t.md")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "policy file not found" in err[0]
+    assert not (tmp_path / "t.md").exists()
+
+
+def _row(motion, pipeline, cn, cc, re, leg="FL", noise=0.03):
+    return Table1Row(leg, noise, motion, pipeline, 0, cn, cc, re, re, 1e-5, motion == "a2i")
+
+
+def test_free_table_json_and_page(tmp_path):
+    held = [_row(m, p, cn, cc, re) for m, cn, cc, re in
+            (("walk", 900.0, 0.9, 30.0), ("spin", 400.0, 0.9, 20.0), ("wave", 60.0, 0.8, 40.0),
+             ("a2i", 1.1, 0.999, 0.01)) for p in ("paper", "ours")]
+    # free base: A2I loses to spin on CN in "ours", beats the paper's A2I except on CC
+    free_rows = [_row(m, p, cn, cc, re) for m, cn, cc, re in
+                 (("walk", 70.0, 0.99, 0.2), ("spin", 1.02, 0.99, 0.3), ("wave", 100.0, 0.9, 9.0),
+                  ("a2i", 1.05, 0.985, 0.1)) for p in ("paper", "ours")]
+    health = RunHealth(16.7, 15.5, 0.22, 0.23, (), "FL", True, 0.021, False, 18.5)
+    free = FreeTable(free_rows, [FreeRun("a2i", "FL", None, health)], [0], "p/x.onnx", 3.0)
+    back = FreeTable.from_json(free.to_json())
+    assert back == free
+    assert beats_paper_a2i(free_rows, "ours")[("FL", 0.03)] == (True, False, True)
+    page = render_page(held, [0], None, free)
+    assert page.index("## The paper's pipeline") < page.index("## Free base")
+    section = page.split("## Free base", 1)[1]
+    assert "| a2i | FL | all | 16.7 | 15.5 | 0.220 | yes | 0.021 | none | no |" in section
+    assert "| ours | 0/1 | 0/1 | 1/1 |" in section  # spin's CN 1.02 < 1.05, CC 0.99 > 0.985
+    assert "| ours | FL | 0.03 | no / no / yes | yes / no / yes |" in section
+    # the CLI re-renders both sections from the two JSON files
+    src = tmp_path / "t1.json"
+    src.write_text(json.dumps([dataclasses.asdict(r) for r in held]))
+    (tmp_path / "t1_policy.json").write_text(free.to_json())
+    out = tmp_path / "t1.md"
+    assert main(["bench", "--from-json", str(src), "--out", str(out)]) == 0
+    assert out.read_text() == page
+    (tmp_path / "t1_policy.json").write_text("[]")
+    assert main(["bench", "--from-json", str(src), "--out", str(out)]) == 2
