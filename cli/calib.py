@@ -215,28 +215,37 @@ def _bench_policy(args, t0: float, out: Path):
 
     from sim.table1 import FreeTable, render_free_section, render_page, run_table1_free
 
-    pol = Path(args.policy)
-    for f in (pol, pol.with_suffix(".json")):
-        if not f.is_file():
-            raise _Fail(f"policy file not found: {f}")
     try:
         import onnxruntime  # noqa: F401
     except ImportError:
         raise _Fail("--policy needs onnxruntime: pip install onnxruntime") from None
-    from policy_train.policy_motion import load_policy, run_policy_a2i
+    from deploy.policy import PolicyMeta
+    from policy_train.policy_motion import load_policy, run_policy_a2i_per_leg
 
-    try:
-        load_policy(pol)  # fail here, once, rather than in every worker
-    except ValueError as e:
-        raise _Fail(str(e).splitlines()[0]) from None
-    seeds = list(range(args.seeds))
     legs = args.legs or list(LEGS)
-    _say(f"Table I, free base, A2I by {pol}: {len(seeds)} seeds x {len(legs)} legs x 3 noise "
+    per_leg: dict[str, str] = {}  # each leg: the last given policy that serves it
+    for p in args.policy:
+        pol = Path(p)
+        for f in (pol, pol.with_suffix(".json")):
+            if not f.is_file():
+                raise _Fail(f"policy file not found: {f}")
+        try:
+            load_policy(pol)  # fail here, once, rather than in every worker
+            per_leg.update(dict.fromkeys(PolicyMeta.load(pol.with_suffix(".json")).legs, p))
+        except ValueError as e:
+            raise _Fail(str(e).splitlines()[0]) from None
+    missing = [g for g in legs if g not in per_leg]
+    if missing:
+        raise _Fail(f"no given policy serves {', '.join(missing)} (its JSON's legs list)")
+    per_leg = {g: per_leg[g] for g in legs}
+    seeds = list(range(args.seeds))
+    shown = "; ".join(f"{g} {p}" for g, p in per_leg.items())
+    _say(f"Table I, free base, A2I by {shown}: {len(seeds)} seeds x {len(legs)} legs x 3 noise "
          f"levels x 4 motions, {args.workers or 'all'} worker processes")
     rows, runs = run_table1_free(
-        functools.partial(run_policy_a2i, str(pol)), seeds, legs, workers=args.workers,
+        functools.partial(run_policy_a2i_per_leg, per_leg), seeds, legs, workers=args.workers,
         progress=lambda i, n: _say(f"  simulated {i}/{n} runs ({time.time() - t0:.0f} s)"))
-    free = FreeTable(rows, runs, seeds, str(args.policy), time.time() - t0)
+    free = FreeTable(rows, runs, seeds, " ".join(args.policy), time.time() - t0)
     write_text_atomic(_free_json(out), free.to_json())
     held_path = out.with_suffix(".json")
     held = _read_held(held_path) if held_path.is_file() else None
@@ -347,10 +356,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--from-json", default=None, metavar="ROWS",
                    help="re-render the page from the rows a previous run saved (no simulation); "
                         "the free-base rows are read from ROWS' <stem>_policy.json if present")
-    s.add_argument("--policy", default=None, metavar="ONNX",
-                   help="run the free-base table instead: A2I executed by this tripod policy "
-                        "(its .json beside it), walk/spin open-loop, naive wave; its rows go to "
-                        "<out stem>_policy.json and its section after the held-base table")
+    s.add_argument("--policy", default=None, nargs="+", metavar="ONNX",
+                   help="run the free-base table instead: A2I executed by the tripod policy "
+                        "(its .json beside it; with several, each leg gets the last one whose "
+                        "JSON lists it, as a2i-deploy picks per leg), walk/spin open-loop, naive "
+                        "wave; its rows go to <out stem>_policy.json and its section after the "
+                        "held-base table")
     s.add_argument("--out", default="docs/results/table1.md", help="markdown output")
     s.set_defaults(func=cmd_bench)
     return p

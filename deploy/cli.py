@@ -82,7 +82,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR", default="calibration",
                    help="output folder (default calibration/)")
     p.add_argument("--policy", metavar="PATH",
-                   help="policy JSON (default: the newest policies/*.json)")
+                   help="policy JSON for every leg (default: per leg, the newest "
+                        "policies/*.json whose 'legs' list has it)")
     p.add_argument("--periods", type=int, metavar="N",
                    help="override the policy's excitation periods (shorter runs; fewer "
                         "samples)")
@@ -125,14 +126,23 @@ def main(argv: list[str] | None = None) -> int:
         print(f"a2i-deploy: error: {e}", file=sys.stderr)
         return 2
     try:
-        from deploy.policy import PolicyMeta, default_policy_path
+        from deploy.policy import default_policy_path, policies_for_legs
 
-        policy_path = Path(args.policy) if args.policy else default_policy_path()
-        meta = PolicyMeta.load(policy_path)
+        want = legs
+        if not want and not args.policy:  # joystick: every leg some policy serves
+            want = []
+            for g in LEGS:
+                try:
+                    default_policy_path(leg=g)
+                    want.append(g)
+                except ValueError:
+                    pass
+        metas = policies_for_legs(want or LEGS, args.policy)
         if args.periods is not None:
             from dataclasses import replace
 
-            meta.schedule = replace(meta.schedule, periods=int(args.periods))
+            for m in {id(m): m for m in metas.values()}.values():
+                m.schedule = replace(m.schedule, periods=int(args.periods))
         extra = None
         if args.sim_config:
             extra = json.loads(Path(args.sim_config).read_text(encoding="utf-8"))
@@ -177,11 +187,15 @@ def main(argv: list[str] | None = None) -> int:
     runner = None
     try:
         try:
-            runner = DeployRunner(cfg, meta)
+            runner = DeployRunner(cfg, metas)
         except (DeployError, ValueError) as e:
             print(f"a2i-deploy: error: {e}", file=sys.stderr)
             return 2
-        _say(f"a2i-deploy: policy {meta.name} ({meta.path}); legs "
+        by_file: dict = {}
+        for g, m in metas.items():
+            by_file.setdefault(m.path, []).append(g)
+        names = "; ".join(f"{', '.join(g)}: {p}" for p, g in by_file.items())
+        _say(f"a2i-deploy: policies {names}; legs "
              f"{', '.join(legs) if legs else 'from the remote (L2+A stand, L1/R1+Up/Down)'}; "
              f"{clock} clock; robot {connect}")
 

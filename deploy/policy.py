@@ -16,11 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.joints import SDK_JOINT_NAMES, check_leg
+from calib.joints import LEGS, SDK_JOINT_NAMES, check_leg
 from deploy.lift_schedule import LiftSchedule
 from deploy.observation import TERM_SIZES, check_terms
 
-__all__ = ["PolicyMeta", "PolicyRunner", "default_policy_path"]
+__all__ = ["PolicyMeta", "PolicyRunner", "default_policy_path", "policies_for_legs"]
 
 ACTION_MODES = ("delta_target",)
 
@@ -59,6 +59,7 @@ class PolicyMeta:
     observation: dict
     lift_command: dict[str, float]
     schedule: LiftSchedule
+    legs: tuple[str, ...] = LEGS
     raw: dict = field(repr=False, default_factory=dict)
 
     @classmethod
@@ -119,12 +120,16 @@ class PolicyMeta:
         kp, kd = _vec12(d, "kp"), _vec12(d, "kd")
         if np.any(kp < 0) or np.any(kd < 0):
             raise ValueError("kp and kd must be >= 0")
+        legs = d.get("legs", list(LEGS))
+        if not isinstance(legs, list) or not legs or any(g not in LEGS for g in legs):
+            raise ValueError(f"legs must be a non-empty list of {', '.join(LEGS)}")
         return cls(
             path=path, onnx_path=path.parent / onnx_name, name=str(d.get("name", path.stem)),
             control_dt=dt, default_pose=_vec12(d, "default_pose"), kp=kp, kd=kd,
             action_scale=scale, action_clip=clip, action_mode=mode,
             soft_lower=lower, soft_upper=upper, observation=dict(obs), lift_command=lift,
-            schedule=LiftSchedule.from_metadata(d.get("lift_schedule") or {}), raw=dict(d),
+            schedule=LiftSchedule.from_metadata(d.get("lift_schedule") or {}),
+            legs=tuple(g for g in LEGS if g in legs), raw=dict(d),
         )
 
     def lift_value(self, leg: str | None) -> float:
@@ -136,10 +141,13 @@ class PolicyMeta:
         return sum(TERM_SIZES[t["name"]] for t in self.observation["terms"])
 
 
-def default_policy_path(search: list[Path] | None = None) -> Path:
+def default_policy_path(search: list[Path] | None = None, leg: str | None = None) -> Path:
     """The newest policy JSON (by ``created_utc``, then file time) in ``policies/`` of the
-    working directory, else of the installed source tree; ValueError when there is none."""
+    working directory, else of the installed source tree, that serves ``leg`` (its ``legs``
+    list; absent = all four; ``leg`` None: a policy for all four legs); ValueError when there
+    is none."""
     dirs = search or [Path.cwd() / "policies", Path(__file__).resolve().parents[1] / "policies"]
+    want = set(LEGS) if leg is None else {check_leg(leg)}
     for d in dirs:
         found = []
         for p in sorted(d.glob("*.json")):
@@ -147,12 +155,44 @@ def default_policy_path(search: list[Path] | None = None) -> Path:
                 meta = json.loads(p.read_text(encoding="utf-8"))
             except (OSError, json.JSONDecodeError):
                 continue
-            if isinstance(meta, dict) and meta.get("schema_version") == 1 and "onnx" in meta:
+            if (isinstance(meta, dict) and meta.get("schema_version") == 1 and "onnx" in meta
+                    and want <= set(meta.get("legs", LEGS))):
                 found.append((str(meta.get("created_utc", "")), p.stat().st_mtime, p.name, p))
         if found:
             return max(found)[-1]
     where = " or ".join(str(d) for d in dirs)
-    raise ValueError(f"no policy JSON found in {where}: give --policy PATH")
+    what = "" if leg is None else f" serving {leg}"
+    raise ValueError(f"no policy JSON{what} found in {where}: give --policy PATH")
+
+
+def policies_for_legs(legs, path: str | os.PathLike | None = None,
+                      search: list[Path] | None = None) -> dict[str, PolicyMeta]:
+    """leg -> :class:`PolicyMeta` for each of ``legs``: ``path`` for all of them (ValueError if
+    its ``legs`` list lacks one), else each leg's newest policy (:func:`default_policy_path`).
+    Legs that share a file share one object. All must agree on what the loop and the stand
+    rely on (control period, default pose, soft limits), since deploy switches between them
+    only at TRIPOD's first tick."""
+    legs = [check_leg(g) for g in legs]
+    if not legs:
+        raise ValueError("no legs to find a policy for")
+    paths = {g: Path(path) if path is not None else default_policy_path(search, g) for g in legs}
+    loaded: dict[Path, PolicyMeta] = {}
+    out = {}
+    for g, p in paths.items():
+        if p not in loaded:
+            loaded[p] = PolicyMeta.load(p)
+        m = loaded[p]
+        if g not in m.legs:
+            raise ValueError(f"policy {p} serves {', '.join(m.legs)}, not {g}")
+        out[g] = m
+    first = next(iter(loaded.values()))
+    for m in loaded.values():
+        if (m.control_dt != first.control_dt or not np.allclose(m.default_pose, first.default_pose)
+                or not np.allclose(m.soft_lower, first.soft_lower)
+                or not np.allclose(m.soft_upper, first.soft_upper)):
+            raise ValueError(f"policies {first.path} and {m.path} differ in control_dt, "
+                             "default_pose or soft_limits: they cannot share one run")
+    return out
 
 
 class PolicyRunner:

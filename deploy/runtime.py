@@ -23,14 +23,14 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
 
-from calib.joints import check_leg
+from calib.joints import LEGS, check_leg
 from calib.solver import SolverConfig
 from deploy.policy import PolicyMeta, PolicyRunner
 from deploy.session import Command, LegOutcome, Session, SessionConfig, State, TickInput
@@ -172,10 +172,13 @@ class DeployRunner:
     on_tick(runner) is called at the end of every tick (tests inject faults from it).
     """
 
-    def __init__(self, config: DeployConfig, meta: PolicyMeta,
+    def __init__(self, config: DeployConfig, meta: PolicyMeta | Mapping[str, PolicyMeta],
                  on_tick: Callable[[DeployRunner], None] | None = None):
+        """meta: the policy, or leg -> policy (:func:`deploy.policy.policies_for_legs`)."""
         self.cfg = config
-        self.meta = meta
+        self.metas = dict(meta) if isinstance(meta, Mapping) else dict.fromkeys(LEGS, meta)
+        # the loop's period, the stand pose and the soft limits: the same in every policy
+        meta = self.meta = next(iter(self.metas.values()))
         self.on_tick = on_tick
         fix_allocator_thresholds()
         self.time_base = make_time_base(config.clock)
@@ -187,14 +190,22 @@ class DeployRunner:
         if missing:
             raise DeployError(f"no foot IMU port for {', '.join(missing)}: give "
                               f"--imu {missing[0]}=/dev/ttyUSB0")
-        self.policy = PolicyRunner(meta)
+        no_policy = [leg for leg in config.legs if leg not in self.metas]
+        if no_policy:
+            raise DeployError(f"no policy for {', '.join(no_policy)}")
+        runners: dict[Path, PolicyRunner] = {}
+        for m in self.metas.values():
+            if m.path not in runners:
+                runners[m.path] = PolicyRunner(m)
+        self.policies = {leg: runners[m.path] for leg, m in self.metas.items()}
         # Plan every excitation and load every leg's kinematics now (0.1-0.4 s each): never
         # inside the loop, nor once per solve.
         from calib.kinematics import LegKinematics
 
         self._kin = {}
         for leg in dict.fromkeys(config.legs or sorted(imu_legs)):
-            meta.schedule.plan(leg)
+            if leg in self.metas:
+                self.metas[leg].schedule.plan(leg)
             self._kin[leg] = LegKinematics.from_urdf(leg=leg)
         rec_cfg = RecorderConfig(seconds=config.record_seconds, imu_hz=config.imu_hz,
                                  legs=tuple(sorted(imu_legs)) or ("FL",))
@@ -202,7 +213,7 @@ class DeployRunner:
         self.supervisor = SafetySupervisor(config.supervisor, meta.soft_lower, meta.soft_upper,
                                            self.dt)
         self.transitions: list[tuple[float, str, str, str]] = []
-        self.session = Session(self.policy, self.supervisor, self.dt, self._start_solve,
+        self.session = Session(self.policies, self.supervisor, self.dt, self._start_solve,
                                legs=config.legs, joystick=config.joystick,
                                config=config.session, on_transition=self._on_transition,
                                on_report=self._on_report, available_legs=sorted(imu_legs))
@@ -420,7 +431,7 @@ class DeployRunner:
         self._next_progress = now + self.cfg.progress_every_s
         s = self.session
         if s.state in (State.TRIPOD, State.CALIBRATE, State.LOWER):
-            sched = self.meta.schedule
+            sched = s.meta.schedule
             t = s._lift_time()
             total = sched.total(s.leg)
             self._say(f"  {s.state.value} {s.leg}: {s.phase} {t:5.1f}/{total:.1f} s "
@@ -541,7 +552,7 @@ class DeployRunner:
         meta = {
             "program": "a2i-deploy",
             "legs": list(self.cfg.legs),
-            "policy": str(self.meta.path),
+            "policy": {leg: str(m.path) for leg, m in self.metas.items()},
             "clock": self.cfg.clock,
             "final_state": self.session.state.value,
             "fault": self.session.fault or "",

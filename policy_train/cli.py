@@ -74,7 +74,8 @@ def _tripod(a) -> int:
 def _export(a) -> int:
     from policy_train.export import export_policy
 
-    onnx_path, json_path = export_policy(a.checkpoint, a.out)
+    legs = [g.strip().upper() for g in a.legs.split(",")] if a.legs else None
+    onnx_path, json_path = export_policy(a.checkpoint, a.out, legs)
     print(f"exported {onnx_path} and {json_path}")
     return 0
 
@@ -132,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
     e = sub.add_parser("export", help="export a checkpoint to ONNX + JSON")
     e.add_argument("checkpoint")
     e.add_argument("--out", required=True, help="path stem, e.g. policies/tripod_v1")
+    e.add_argument("--legs", default=None,
+                   help="legs deploy may lift with it, e.g. RL,RR (default: all four)")
     v = sub.add_parser("eval", help="evaluate an exported policy (onnxruntime)")
     v.add_argument("onnx")
     v.add_argument("--episodes", type=int, default=100)

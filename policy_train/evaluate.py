@@ -57,7 +57,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
 
     onnx_path = Path(onnx_path)
     meta = json.loads(onnx_path.with_suffix(".json").read_text())
-    legs = tuple(legs) if legs else MODEL_LEGS
+    legs = tuple(legs) if legs else tuple(meta.get("legs", MODEL_LEGS))  # the legs it serves
     if episodes < 1:
         raise ValueError("episodes must be >= 1")
     sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])

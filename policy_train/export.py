@@ -62,8 +62,10 @@ def git_commit() -> str:
         return "unknown"
 
 
-def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int) -> dict:
-    """The JSON object of ``docs/policy-format.md`` (``evaluation`` empty until eval runs)."""
+def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
+                   legs=None) -> dict:
+    """The JSON object of ``docs/policy-format.md`` (``evaluation`` empty until eval runs).
+    legs: the legs deploy may lift with this policy (None: all four)."""
     import calib.joints as cj
     from deploy.observation import default_terms
     from policy_train.env import LIFT_VALUES
@@ -101,14 +103,17 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int) -> d
         "lift_command": {k: int(v) for k, v in LIFT_VALUES.items()},
         "lift_schedule": sched.to_metadata(),
         "lift_command_after_done": 0,
+        "legs": [cj.check_leg(g) for g in legs] if legs else list(cj.LEGS),
         "training_model": {"integrator": "implicitfast", "armature": ARMATURE,
                            "actuator": "position (kp, kv), forcerange = effort limits"},
         "evaluation": {},
     }
 
 
-def export_policy(checkpoint: str | Path, out_stem: str | Path) -> tuple[Path, Path]:
-    """Write ``<out_stem>.onnx`` and ``<out_stem>.json`` from a training checkpoint."""
+def export_policy(checkpoint: str | Path, out_stem: str | Path,
+                  legs=None) -> tuple[Path, Path]:
+    """Write ``<out_stem>.onnx`` and ``<out_stem>.json`` from a training checkpoint; legs: the
+    JSON's ``legs`` (the legs deploy may lift with it; None: all four)."""
     import onnx
     import onnxruntime as ort
 
@@ -141,7 +146,7 @@ def export_policy(checkpoint: str | Path, out_stem: str | Path) -> tuple[Path, P
         if y.shape != (n, 12) or not np.allclose(y, ref, atol=1e-4, rtol=1e-4):
             raise RuntimeError(f"onnxruntime disagrees with torch (batch {n}): "
                                f"max err {np.abs(y - ref).max():.2e}")
-    meta = build_metadata(name, cfg, int(d.get("seed", 0)), int(d["iter"]))
+    meta = build_metadata(name, cfg, int(d.get("seed", 0)), int(d["iter"]), legs)
     meta["training_history"] = [
         {k: h[k] for k in ("iteration", "mean_step_reward", "mean_episode_reward",
                            "mean_episode_length_s", "stage")}

@@ -48,7 +48,7 @@ from sim.free_base_run import (
 )
 from sim.sensors import BodyImuModel, EncoderModel
 
-__all__ = ["load_policy", "run_policy_a2i"]
+__all__ = ["load_policy", "run_policy_a2i", "run_policy_a2i_per_leg"]
 
 _EXCITE = PHASES.index("excite")
 _DONE = PHASES.index("done")
@@ -193,3 +193,9 @@ def run_policy_a2i(
     h = health.result()
     h = dataclasses.replace(h, fell=h.fell or bool(fell))
     return rec.finish(f"a2i_{leg}", encoder, body_imu), h
+
+
+def run_policy_a2i_per_leg(policies, leg: str, **kwargs) -> tuple[MotionRun, RunHealth]:
+    """:func:`run_policy_a2i` of ``leg`` with ``policies[leg]`` (leg -> ``.onnx`` path; a
+    picklable callable for the free-base Table I's worker processes)."""
+    return run_policy_a2i(policies[check_leg(leg)], leg, **kwargs)

@@ -468,7 +468,9 @@ def render_free_section(table: FreeTable) -> str:
         (f"Produced by `a2i-calib bench --policy {table.policy}` (`sim/table1.py`, "
          "`sim/free_base_run.py`, `policy_train/policy_motion.py`); seeds "
          + ", ".join(str(s) for s in table.seeds)
-         + "; the same legs, noise levels, mountings, pipelines and scoring as above."),
+         + "; the same legs, noise levels, mountings, pipelines and scoring as above. With "
+           "several policies each leg is lifted by the last one whose JSON lists it, as "
+           "`a2i-deploy` picks per leg."),
         "",
         ("**Nothing holds the base.** The Go2 stands on the floor (MuJoCo, free base, 1 kHz "
          "physics, the motor PD law every step) and the base goes where the contact forces "

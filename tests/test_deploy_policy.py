@@ -9,7 +9,7 @@ import pytest
 from calib.joints import SDK_JOINT_NAMES
 from deploy.hold_policy import hold_policy_metadata, write_hold_policy
 from deploy.observation import build_observation, projected_gravity
-from deploy.policy import PolicyMeta, PolicyRunner, default_policy_path
+from deploy.policy import PolicyMeta, PolicyRunner, default_policy_path, policies_for_legs
 
 pytest.importorskip("onnx")
 
@@ -45,6 +45,8 @@ def test_load_and_run(policy_json):
     (lambda d: d["lift_command"].pop("RR"), "RR"),
     (lambda d: d["soft_limits"].update(lower=[2.0] * 12), "soft_limits"),
     (lambda d: d["lift_schedule"].update(typo=1), "lift_schedule"),
+    (lambda d: d.update(legs=["XX"]), "legs"),
+    (lambda d: d.update(legs=[]), "legs"),
 ])
 def test_bad_metadata_is_refused_with_a_reason(tmp_path, mutate, msg):
     d = hold_policy_metadata()
@@ -91,3 +93,37 @@ def test_observation_from_metadata_terms(policy_json):
     np.testing.assert_allclose(obs[21:33], dq * terms["joint_vel"]["scale"], rtol=1e-5)
     np.testing.assert_allclose(obs[33:45], prev, rtol=1e-6)
     assert obs[48] == pytest.approx(3.0 * terms["lift_command"]["scale"])
+
+
+def _with(path, **changes):
+    d = json.loads(path.read_text())
+    d.update(changes)
+    path.write_text(json.dumps(d))
+    return path
+
+
+def test_each_leg_gets_the_newest_policy_that_serves_it(tmp_path):
+    front = _with(write_hold_policy(tmp_path, name="all4"), created_utc="2030-01-01T00:00:00")
+    rear = _with(write_hold_policy(tmp_path, name="rear"), created_utc="2031-01-01T00:00:00",
+                 legs=["RL", "RR"])
+    assert PolicyMeta.load(rear).legs == ("RL", "RR")
+    assert PolicyMeta.load(front).legs == ("FL", "FR", "RL", "RR")  # no list: all four
+    assert default_policy_path([tmp_path]) == front  # a policy for all four legs
+    assert default_policy_path([tmp_path], leg="RR") == rear
+    got = policies_for_legs(["FL", "RR", "RL"], search=[tmp_path])
+    assert got["FL"].path == front and got["RR"].path == got["RL"].path == rear
+    assert got["RR"] is got["RL"]  # one object (and one runner in deploy) per file
+    # --policy: one file for every leg, which must serve them all
+    assert {m.path for m in policies_for_legs(["FL", "RR"], front).values()} == {front}
+    with pytest.raises(ValueError, match="serves RL, RR, not FL"):
+        policies_for_legs(["FL"], rear)
+
+
+def test_policies_that_cannot_share_a_run_are_refused(tmp_path):
+    write_hold_policy(tmp_path, name="all4")
+    d = hold_policy_metadata()
+    rear = write_hold_policy(tmp_path, name="rear")
+    _with(rear, legs=["RR"], created_utc="2031-01-01T00:00:00",
+          default_pose=[x + 0.1 for x in d["default_pose"]])
+    with pytest.raises(ValueError, match="default_pose"):
+        policies_for_legs(["FL", "RR"], search=[tmp_path])

@@ -22,7 +22,7 @@ from calib.metrics import geodesic_error_deg
 from calib.result import CalibrationResult
 from deploy.hold_policy import write_hold_policy
 from deploy.lift_schedule import LiftSchedule
-from deploy.policy import PolicyMeta, default_policy_path
+from deploy.policy import PolicyMeta, policies_for_legs
 from deploy.runtime import DeployConfig, DeployError, DeployRunner, ImuPort
 from deploy.session import SessionConfig, State
 from deploy.simulate import free_tcp_port, truth_tuples
@@ -51,16 +51,18 @@ def start_mock(seed: int, **extra) -> MockRobot:
 
 
 def deploy(robot: MockRobot, policy_json, legs, out, on_tick=None, session=FAST, periods=None):
-    meta = PolicyMeta.load(policy_json)
+    """policy_json None: each leg's newest committed policy (as a2i-deploy without --policy)."""
+    metas = policies_for_legs(legs, policy_json)
     if periods is not None:
         from dataclasses import replace
 
-        meta.schedule = replace(meta.schedule, periods=periods)
+        for m in {id(m): m for m in metas.values()}.values():
+            m.schedule = replace(m.schedule, periods=periods)
     cfg = DeployConfig(
         legs=list(legs), out_dir=out, connect=list(robot.config.listen),
         imus=[ImuPort(leg, port) for leg, port in robot.imu_ports.items()], clock="lockstep",
         record_seconds=150.0, session=session, truth=truth_tuples(robot.truth()))
-    return DeployRunner(cfg, meta, on_tick=on_tick).run()
+    return DeployRunner(cfg, metas, on_tick=on_tick).run()
 
 
 def check_against_truth(result, robot, out, legs):
@@ -272,23 +274,21 @@ def test_joystick_mode_stand_then_calibrate_by_combo(policies, tmp_path):
 
 
 # ---------------------------------------------------------------------------- trained policy
-def _trained_policy():
+def _trained_policies():
+    """Each leg's newest committed policy, or None while some leg has none."""
     try:
-        return default_policy_path()
+        return policies_for_legs(["FL", "FR", "RL", "RR"])
     except ValueError:
         return None
 
 
-@pytest.mark.skipif(_trained_policy() is None,
-                    reason="no trained tripod policy in policies/ yet (the policy engineer "
-                           "commits it); the floor test needs it to stand on three legs")
-@pytest.mark.xfail(reason="the committed tripod policy does not yet hold the body within the 30 deg "
-                          "tilt limit on every leg (issue 4 open: docs/results/policy.md)",
-                   strict=False)
+@pytest.mark.skipif(_trained_policies() is None,
+                    reason="some leg has no trained tripod policy in policies/; the floor "
+                           "test needs one for each leg to stand on three legs")
 def test_robot_on_the_floor_all_legs_recover_mounting(tmp_path):
     robot = start_mock(seed=21, base="free")
     try:
-        result = deploy(robot, _trained_policy(), ["FL", "FR", "RL", "RR"], tmp_path,
+        result = deploy(robot, None, ["FL", "FR", "RL", "RR"], tmp_path,
                         session=SessionConfig(), periods=1)
     finally:
         robot.stop()
