@@ -8,7 +8,8 @@ States and their exits (every transition is reported with its cause)::
               stand gains, then a settle. -> SOLVE if a leg was just lowered; -> TRIPOD(leg) if
               a leg is queued (or its joystick combo fired); -> SIT when nothing is left on
               the command line. Timeout: pose not reached -> DAMP.
-    TRIPOD    the ONNX policy with the leg's lift command; the leg's motors follow the lift
+    TRIPOD    the leg's ONNX policy (switched in here when legs have their own) with the
+              leg's lift command; the leg's motors follow the lift
               schedule (shift, lift, hold). -> CALIBRATE when the excitation begins.
               The lifted leg must track its targets by the end of hold, else abort -> LOWER.
     CALIBRATE the excitation plan on the lifted leg; its span is the recording window of SOLVE.
