@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.joints import LEGS, check_leg
+from calib.joints import check_leg
 from calib.solver import SolverConfig
 from deploy.policy import PolicyMeta, PolicyRunner
 from deploy.session import Command, LegOutcome, Session, SessionConfig, State, TickInput
@@ -176,7 +176,7 @@ class DeployRunner:
                  on_tick: Callable[[DeployRunner], None] | None = None):
         """meta: the policy, or leg -> policy (:func:`deploy.policy.policies_for_legs`)."""
         self.cfg = config
-        self.metas = dict(meta) if isinstance(meta, Mapping) else dict.fromkeys(LEGS, meta)
+        self.metas = dict(meta) if isinstance(meta, Mapping) else dict.fromkeys(meta.legs, meta)
         # the loop's period, the stand pose and the soft limits: the same in every policy
         meta = self.meta = next(iter(self.metas.values()))
         self.on_tick = on_tick
