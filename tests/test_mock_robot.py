@@ -210,10 +210,12 @@ def test_lowstate_wire_format_rate_and_joystick_in_realtime():
         assert v.crc == lowstate_crc(s.payload)
         ticks.append(v.tick)
     # the realtime tick is the mock's wall clock: 2 ms per message, +-1 ms where the OS held
-    # the mock up for a moment; none lost (the tick span matches the message count)
+    # the mock up for a moment; none lost on the way (all it published arrived)
     d = np.diff(ticks)
     assert d.min() >= 0 and np.median(d) == 2
-    assert abs((ticks[-1] - ticks[0]) - 2 * (len(ticks) - 1)) <= 20
+    assert 0 <= st["lowstates_published"] - len(samples) <= 5, (len(samples), st)
+    if st["resyncs"] == 0:  # (a resync skips simulated time the wall clock has passed)
+        assert abs((ticks[-1] - ticks[0]) - 2 * (len(ticks) - 1)) <= 20, st
     t = np.array([s.t_ns for s in samples]) * 1e-9
     span = samples[-1].t_ns - samples[0].t_ns
     mask = t - t[0] <= 2.0

@@ -226,7 +226,6 @@ def test_independent_client_at_the_wire(mock):
         # 500 Hz, tick in ms from the robot's free-running clock: 2 ms a message, more where
         # the (simulated) sender was held up and less while it caught up; never backwards
         assert min(steps) >= 0 and sorted(steps)[len(steps) // 2] == 2, steps
-        assert abs((ticks[-1] - ticks[0]) - 2 * (len(ticks) - 1)) <= 20, ticks
         rate = (len(got) - 1) / (got[-1][0] - got[0][0])
         assert 100 < rate < 650, rate  # 500 Hz nominal; the exact rate is the mock tests' job
 
