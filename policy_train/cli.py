@@ -37,20 +37,14 @@ def _tripod(a) -> int:
             for k in ("terminate_on_contact", "p_reference_start", "reference_margin_m",
                       "reference_joint_noise", "p_reference_shift", "lift_leg_weights"):
                 setattr(cfg.env, k, getattr(fresh, k))
-    if a.num_envs is not None:
-        cfg.env.num_envs = a.num_envs
-    if a.plans_per_leg is not None:
-        cfg.env.plans_per_leg = a.plans_per_leg
-    if a.save_interval is not None:
-        cfg.ppo.save_interval = a.save_interval
-    if a.model_file is not None:
-        cfg.env.model_file = a.model_file
-    if a.plan_pool is not None:
-        cfg.env.plan_pool_file = a.plan_pool
-    if a.steps_per_env is not None:
-        cfg.ppo.num_steps_per_env = a.steps_per_env
-    if a.entropy_coef is not None:
-        cfg.ppo.entropy_coef = a.entropy_coef
+    overrides = {"num_envs": (cfg.env, "num_envs"), "plans_per_leg": (cfg.env, "plans_per_leg"),
+                 "save_interval": (cfg.ppo, "save_interval"),
+                 "model_file": (cfg.env, "model_file"), "plan_pool": (cfg.env, "plan_pool_file"),
+                 "steps_per_env": (cfg.ppo, "num_steps_per_env"),
+                 "entropy_coef": (cfg.ppo, "entropy_coef")}
+    for arg, (section, field) in overrides.items():
+        if getattr(a, arg) is not None:
+            setattr(section, field, getattr(a, arg))
     run_dir = Path(a.run_dir or f"runs/tripod_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
     t0 = time.time()
     tr = Trainer(cfg, run_dir, seed=a.seed, log=lambda s: print(s, flush=True))
@@ -74,8 +68,7 @@ def _tripod(a) -> int:
 def _export(a) -> int:
     from policy_train.export import export_policy
 
-    legs = [g.strip().upper() for g in a.legs.split(",")] if a.legs else None
-    onnx_path, json_path = export_policy(a.checkpoint, a.out, legs)
+    onnx_path, json_path = export_policy(a.checkpoint, a.out, a.legs)
     print(f"exported {onnx_path} and {json_path}")
     return 0
 
@@ -102,10 +95,19 @@ def _pack(a) -> int:
 def _eval(a) -> int:
     from policy_train.evaluate import evaluate_policy
 
-    legs = tuple(s.strip().upper() for s in a.legs.split(",")) if a.legs else None
-    evaluate_policy(a.onnx, episodes=a.episodes, legs=legs, seed=a.seed,
+    evaluate_policy(a.onnx, episodes=a.episodes, legs=a.legs, seed=a.seed,
                     write=not a.no_write, results_path=a.results, nominal=a.nominal)
     return 0
+
+
+def _leg_list(text: str) -> tuple[str, ...]:
+    """argparse type: comma-separated legs, e.g. ``RL,RR``."""
+    from calib.joints import check_leg
+
+    try:
+        return tuple(check_leg(g.strip()) for g in text.split(","))
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -133,12 +135,13 @@ def main(argv: list[str] | None = None) -> int:
     e = sub.add_parser("export", help="export a checkpoint to ONNX + JSON")
     e.add_argument("checkpoint")
     e.add_argument("--out", required=True, help="path stem, e.g. policies/tripod_v1")
-    e.add_argument("--legs", default=None,
+    e.add_argument("--legs", type=_leg_list, default=None,
                    help="legs deploy may lift with it, e.g. RL,RR (default: all four)")
     v = sub.add_parser("eval", help="evaluate an exported policy (onnxruntime)")
     v.add_argument("onnx")
     v.add_argument("--episodes", type=int, default=100)
-    v.add_argument("--legs", default=None)
+    v.add_argument("--legs", type=_leg_list, default=None,
+                   help="legs to evaluate, e.g. FL,RR (default: the legs its JSON lists)")
     v.add_argument("--seed", type=int, default=1)
     v.add_argument("--no-write", action="store_true", help="do not write results files")
     v.add_argument("--nominal", action="store_true",

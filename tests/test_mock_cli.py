@@ -10,6 +10,8 @@ import sys
 import time
 from pathlib import Path
 
+from loopback import free_endpoint
+
 REPO = Path(__file__).resolve().parents[1]
 CMD = [sys.executable, "-m", "hw.mock.cli"]
 
@@ -17,12 +19,6 @@ CMD = [sys.executable, "-m", "hw.mock.cli"]
 def run(*args: str, timeout: float = 30.0) -> subprocess.CompletedProcess:
     return subprocess.run([*CMD, *args], check=False, cwd=REPO, capture_output=True, text=True,
                           timeout=timeout)
-
-
-def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
 
 
 def test_help():

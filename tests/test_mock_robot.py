@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import json
-import socket
 import threading
 import time
 
 import numpy as np
 import pytest
+from loopback import free_endpoint, wait_until
 
 from calib.joints import LIE_POSE_LEG, STAND_POSE_LEG, full_pose, sdk_indices
 from calib.kinematics import closed_form_foot_angular_velocity
@@ -29,21 +29,6 @@ from hw.transport import KEY_LOWCMD, KEY_LOWSTATE, KEY_WIRELESS, Transport, Tran
 Q_LIE = full_pose(LIE_POSE_LEG, order="sdk")
 Q_STAND = full_pose(STAND_POSE_LEG, order="sdk")
 NO_IMUS = {"all": {"enabled": False}}
-
-
-def free_endpoint() -> str:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
-
-
-def wait_until(pred, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
 
 
 def stand_cmd(i: int, kp: float = 60.0, kd: float = 5.0) -> bytes:

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from loopback import free_port, wait_until
 
 from hw.transport import (
     KEY_LOWCMD,
@@ -28,12 +29,6 @@ from hw.transport import (
 
 REPO = Path(__file__).resolve().parents[1]
 LOWSTATE_BYTES = 1180
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture
@@ -68,15 +63,6 @@ def sync(a: Transport, b: Transport) -> None:
         assert time.monotonic() < deadline, "sessions never met"
         pub.put(b"s")
         seen.wait(0.01)
-
-
-def wait_until(pred, timeout: float) -> bool:
-    deadline = time.monotonic() + timeout
-    while not pred():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
 
 
 # -- configuration ---------------------------------------------------------------------
