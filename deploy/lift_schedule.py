@@ -93,8 +93,10 @@ class LiftSchedule:
     """Phase durations (s), the lifted leg's PD gains, and the excitation settings.
 
     shift, lift, hold, lower: s. kp N m/rad, kd N m s/rad: gains of the lifted leg's motors
-    while targets exist. t_r (s), n_basis, periods, seed: :class:`calib.excitation.ExcitationConfig`
-    of each leg's plan (other settings at their defaults).
+    while targets exist. t_r (s), n_basis, periods, seed, ground_clearance (m):
+    :class:`calib.excitation.ExcitationConfig` of each leg's plan (other settings at their
+    defaults). A policy JSON without ``ground_clearance`` was trained on plans with the
+    generator's default.
     """
 
     shift: float = 1.0
@@ -107,6 +109,7 @@ class LiftSchedule:
     n_basis: int = 10
     periods: int = 4
     seed: int = 0
+    ground_clearance: float = ExcitationConfig.ground_clearance
 
     def __post_init__(self) -> None:
         for k in ("shift", "lift", "hold", "lower"):
@@ -115,6 +118,8 @@ class LiftSchedule:
                 raise ValueError(f"{k} must be a positive duration (s), got {v}")
         if not (self.kp > 0 and self.kd >= 0):
             raise ValueError("kp must be > 0 and kd >= 0")
+        if not (np.isfinite(self.ground_clearance) and self.ground_clearance >= 0):
+            raise ValueError(f"ground_clearance must be >= 0 m, got {self.ground_clearance}")
         self._plans: dict[str, ExcitationPlan] = {}
 
     # ------------------------------------------------------------------ metadata
@@ -134,7 +139,8 @@ class LiftSchedule:
     # ------------------------------------------------------------------ plans and phases
     def excitation_config(self, leg: str) -> ExcitationConfig:
         return ExcitationConfig(leg=check_leg(leg), t_r=self.t_r, n_basis=self.n_basis,
-                                periods=self.periods, seed=self.seed)
+                                periods=self.periods, seed=self.seed,
+                                ground_clearance=self.ground_clearance)
 
     def plan(self, leg: str) -> ExcitationPlan:
         """The leg's excitation plan (optimised on first use, ~0.1-0.4 s, then cached)."""

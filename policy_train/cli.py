@@ -2,7 +2,7 @@
 
   a2i-train tripod [--iterations N] [--seed S] [--num-envs N] [--resume CKPT] [--run-dir D]
                    [--export policies/NAME]
-  a2i-train export CHECKPOINT --out policies/NAME
+  a2i-train export CHECKPOINT --out policies/NAME [--legs RL,RR] [--mirror-legs FR]
   a2i-train eval policies/NAME.onnx [--episodes 100] [--legs FL,FR,RL,RR] [--no-write]
   a2i-train pack OUTDIR            (compiled model + plan pool for a machine without the URDF)
 
@@ -22,7 +22,7 @@ __all__ = ["main"]
 def _tripod(a) -> int:
     import torch
 
-    from policy_train.config import EnvConfig, RewardConfig, TrainConfig
+    from policy_train.config import DRConfig, EnvConfig, RewardConfig, TrainConfig
     from policy_train.runner import Trainer
 
     if a.iterations < 1:
@@ -34,17 +34,22 @@ def _tripod(a) -> int:
         if a.new_rewards:  # continue the weights under this code's rewards and episodes
             fresh = EnvConfig()
             cfg.env.rewards = RewardConfig()
+            cfg.env.dr = DRConfig()
             for k in ("terminate_on_contact", "p_reference_start", "reference_margin_m",
-                      "reference_joint_noise", "p_reference_shift", "lift_leg_weights"):
+                      "reference_joint_noise", "p_reference_shift", "lift_leg_weights",
+                      "ground_clearance"):
                 setattr(cfg.env, k, getattr(fresh, k))
     overrides = {"num_envs": (cfg.env, "num_envs"), "plans_per_leg": (cfg.env, "plans_per_leg"),
                  "save_interval": (cfg.ppo, "save_interval"),
                  "model_file": (cfg.env, "model_file"), "plan_pool": (cfg.env, "plan_pool_file"),
                  "steps_per_env": (cfg.ppo, "num_steps_per_env"),
-                 "entropy_coef": (cfg.ppo, "entropy_coef")}
+                 "entropy_coef": (cfg.ppo, "entropy_coef"),
+                 "lift_leg_weights": (cfg.env, "lift_leg_weights")}
     for arg, (section, field) in overrides.items():
         if getattr(a, arg) is not None:
             setattr(section, field, getattr(a, arg))
+    if a.mirror_augmentation:
+        cfg.ppo.mirror_augmentation = True
     run_dir = Path(a.run_dir or f"runs/tripod_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
     t0 = time.time()
     tr = Trainer(cfg, run_dir, seed=a.seed, log=lambda s: print(s, flush=True))
@@ -68,7 +73,7 @@ def _tripod(a) -> int:
 def _export(a) -> int:
     from policy_train.export import export_policy
 
-    onnx_path, json_path = export_policy(a.checkpoint, a.out, a.legs)
+    onnx_path, json_path = export_policy(a.checkpoint, a.out, a.legs, a.mirror_legs)
     print(f"exported {onnx_path} and {json_path}")
     return 0
 
@@ -87,7 +92,7 @@ def _pack(a) -> int:
     out.mkdir(parents=True, exist_ok=True)
     TrainModel(c.physics_dt, c.kp, c.kd).save(out / "go2_train.mjb")
     PlanPool(a.plans_per_leg, c.t_r_range, c.n_basis, c.train_periods, c.physics_dt,
-             np.random.default_rng(a.seed)).save(out / "pool.npz")
+             np.random.default_rng(a.seed), c.ground_clearance).save(out / "pool.npz")
     print(f"wrote {out / 'go2_train.mjb'} and {out / 'pool.npz'}")
     return 0
 
@@ -110,6 +115,17 @@ def _leg_list(text: str) -> tuple[str, ...]:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def _weights(text: str) -> tuple[float, ...]:
+    """argparse type: four non-negative lift weights, FL,FR,RL,RR, not all zero."""
+    try:
+        w = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        w = ()
+    if len(w) != 4 or min(w) < 0 or sum(w) <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: give 4 non-negative weights FL,FR,RL,RR")
+    return w
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="a2i-train", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -123,13 +139,19 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--steps-per-env", type=int, default=None)
     t.add_argument("--save-interval", type=int, default=None)
     t.add_argument("--entropy-coef", type=float, default=None, help="PPO entropy bonus")
+    t.add_argument("--lift-leg-weights", type=_weights, default=None, metavar="FL,FR,RL,RR",
+                   help="how often each leg is lifted, e.g. 3,3,1,1 (default 2,2,1,1)")
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this")
     t.add_argument("--model-file", default=None, help="compiled training model (.mjb)")
     t.add_argument("--plan-pool", default=None, help="precomputed excitation plan pool (.npz)")
     t.add_argument("--resume", default=None, help="checkpoint to continue from")
     t.add_argument("--new-rewards", action="store_true",
-                   help="with --resume: use the current reward weights and episode settings "
-                        "(contact terminations, reference starts), not the checkpoint's")
+                   help="with --resume: use the current reward weights, episode settings (contact "
+                        "terminations, reference starts, ...) and domain randomisation, not the "
+                        "checkpoint's")
+    t.add_argument("--mirror-augmentation", action="store_true",
+                   help="with --resume: train on the left-right mirrored samples too (the "
+                        "default for new runs; checkpoints from before v5 did not)")
     t.add_argument("--run-dir", default=None)
     t.add_argument("--export", default=None, help="after training, export to this path stem")
     e = sub.add_parser("export", help="export a checkpoint to ONNX + JSON")
@@ -137,6 +159,9 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--out", required=True, help="path stem, e.g. policies/tripod_v1")
     e.add_argument("--legs", type=_leg_list, default=None,
                    help="legs deploy may lift with it, e.g. RL,RR (default: all four)")
+    e.add_argument("--mirror-legs", type=_leg_list, default=None,
+                   help="legs played as the mirror image of the opposite side's lift, e.g. FR "
+                        "(FR as FL mirrored; the robot and the task are left-right symmetric)")
     v = sub.add_parser("eval", help="evaluate an exported policy (onnxruntime)")
     v.add_argument("onnx")
     v.add_argument("--episodes", type=int, default=100)

@@ -57,6 +57,9 @@ class DRConfig:
     base_mass_add: tuple[float, float] = (-1.0, 2.0)        # kg added to the base
     link_mass_scale: tuple[float, float] = (0.9, 1.1)       # other links' masses
     base_com_offset: tuple[float, float, float] = (0.03, 0.02, 0.02)  # +- m (x, y, z)
+    # joint armature (rotor inertia through the gearbox), kg m^2; nominal 0.01. v5 balanced in
+    # the training model but fell in sim.go2 (no armature) when this was fixed at 0.01
+    armature: tuple[float, float] = (0.0, 0.02)
     friction: tuple[float, float] = (0.4, 1.25)             # floor and feet sliding friction
     kp_scale: tuple[float, float] = (0.85, 1.15)
     kd_scale: tuple[float, float] = (0.8, 1.2)
@@ -100,6 +103,10 @@ class EnvConfig:
     lower_s: float = 0.6
     t_r_range: tuple[float, float] = (0.3, 0.65)
     n_basis: int = 10
+    # lifted foot centre this far (m) above the stance feet in the generator's model (base at
+    # the stand height, 0.34 m below the hips); the tripod stands at base_height_target 0.31 m,
+    # so 0.12 keeps the foot ~7 cm off the floor where the default 0.08 left 3-4 cm (v1-v4)
+    ground_clearance: float = 0.12
     train_periods: int = 1            # periods per training plan (fits a 10 s command window)
     plans_per_leg: int = 6
     fall_tilt: float = 1.0            # rad; beyond: terminated
@@ -145,6 +152,8 @@ class PPOConfig:
     desired_kl: float = 0.01
     max_grad_norm: float = 1.0
     stage1_fraction: float = 0.15     # first fraction of iterations: tripod only (paper phase 1)
+    # every mini-batch also trains on its left-right mirror image (policy_train.symmetry)
+    mirror_augmentation: bool = True
     save_interval: int = 25
 
 
@@ -168,7 +177,10 @@ class TrainConfig:
         e.setdefault("p_reference_start", 0.0)
         e.setdefault("p_reference_shift", 0.0)
         e.setdefault("lift_leg_weights", (1.0, 1.0, 1.0, 1.0))
+        e.setdefault("ground_clearance", 0.08)  # the excitation generator's default then
         dr = {k: tuple(v) if isinstance(v, list) else v for k, v in e.pop("dr").items()}
+        dr.setdefault("armature", (0.01, 0.01))  # fixed at the model's ARMATURE before v5
         e = {k: tuple(v) if isinstance(v, list) else v for k, v in e.items()}
         p = {k: tuple(v) if isinstance(v, list) else v for k, v in d["ppo"].items()}
+        p.setdefault("mirror_augmentation", False)  # not used before v5
         return cls(EnvConfig(**e, rewards=rw, dr=DRConfig(**dr)), PPOConfig(**p))

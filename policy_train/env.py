@@ -37,12 +37,16 @@ from policy_train.model import TrainModel
 from policy_train.rewards import compute_rewards
 from policy_train.tripod_pose import tripod_pose
 
-__all__ = ["LIFT_VALUES", "PlanPool", "TripodEnv"]
+__all__ = ["LIFT_VALUES", "PRIV_TERMS", "PlanPool", "TripodEnv"]
 
 LIFT_VALUES = {"none": 0, "FL": 1, "FR": 2, "RL": 3, "RR": 4}
 """Value of the ``lift_command`` observation per leg (paper: c_lift in {0, ..., 4})."""
 
-PRIV_SIZE = 3 + 1 + 4 + 4 + 6 + 1 + 8 + 3
+PRIV_TERMS: tuple[tuple[str, int], ...] = (
+    ("lin_vel", 3), ("height", 1), ("foot_contact", 4), ("params", 4), ("phase", 6),
+    ("phase_time", 1), ("state", 8), ("lift_error", 3))
+"""Privileged critic terms after the policy observation, in order (:meth:`TripodEnv.observations`)."""
+PRIV_SIZE = sum(n for _, n in PRIV_TERMS)
 
 
 def _quat_rotate_inv(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -63,14 +67,14 @@ class PlanPool:
     """
 
     def __init__(self, per_leg: int, t_r_range, n_basis: int, periods: int, dt: float,
-                 rng: np.random.Generator):
+                 rng: np.random.Generator, ground_clearance: float = 0.08):
         qs, dqs, self.leg, self.duration, self.t_r = [], [], [], [], []
         for li, leg in enumerate(MODEL_LEGS):
             for _ in range(per_leg):
                 t_r = float(rng.uniform(*t_r_range))
                 plan = plan_excitation(ExcitationConfig(
                     leg=leg, t_r=t_r, n_basis=n_basis, periods=periods,
-                    seed=int(rng.integers(1 << 30))))
+                    seed=int(rng.integers(1 << 30)), ground_clearance=ground_clearance))
                 t = np.arange(int(np.ceil(plan.duration / dt)) + 1) * dt
                 qs.append(plan.positions(t))
                 dqs.append(plan.velocities(t))
@@ -162,7 +166,7 @@ class TripodEnv:
             plan_pool = PlanPool.load(cfg.plan_pool_file)
         self.pool = plan_pool if plan_pool is not None else PlanPool(
             cfg.plans_per_leg, cfg.t_r_range, cfg.n_basis, cfg.train_periods, cfg.physics_dt,
-            np.random.default_rng(cfg.seed + 1))
+            np.random.default_rng(cfg.seed + 1), cfg.ground_clearance)
         # start height: feet on the floor at the default pose
         d = mujoco.MjData(m)
         d.qpos[3] = 1.0
@@ -240,6 +244,8 @@ class TripodEnv:
         mass[:, base] = self._masses_nominal[base] + self.mass_add
         off = np.asarray(dr.base_com_offset)
         ipos[:, base] = self._ipos_nominal[base] + self.rng.uniform(-off, off, size=(N, 3))
+        arm = self.batch.expand("dof_armature")
+        arm[:, 6:] = self.rng.uniform(*dr.armature, size=(N, 1))
         self.batch.set_const()
 
     # ------------------------------------------------------------------ reset

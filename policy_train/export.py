@@ -77,7 +77,7 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
     hi = np.concatenate([cj.position_limits(leg)[1] for leg in cj.SDK_LEGS]) - e.soft_limit_margin
     sched = LiftSchedule(shift=e.shift_s, lift=e.lift_s, hold=e.hold_s, lower=e.lower_s,
                          kp=e.lift_kp, kd=e.lift_kd, t_r=EVAL_T_R, n_basis=e.n_basis,
-                         periods=EVAL_PERIODS, seed=0)
+                         periods=EVAL_PERIODS, seed=0, ground_clearance=e.ground_clearance)
     fl = lambda a: [float(x) for x in np.asarray(a, dtype=float)]
     return {
         "schema_version": 1,
@@ -111,15 +111,25 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
 
 
 def export_policy(checkpoint: str | Path, out_stem: str | Path,
-                  legs=None) -> tuple[Path, Path]:
+                  legs=None, mirror_legs=None) -> tuple[Path, Path]:
     """Write ``<out_stem>.onnx`` and ``<out_stem>.json`` from a training checkpoint; legs: the
-    JSON's ``legs`` (the legs deploy may lift with it; None: all four)."""
+    JSON's ``legs`` (the legs deploy may lift with it; None: all four). mirror_legs: legs
+    whose lifts the graph plays as the mirror image of the opposite side's
+    (:class:`policy_train.symmetry.MirroredLegsActor`; the JSON's ``mirrored_legs``)."""
     import onnx
     import onnxruntime as ort
+
+    from policy_train.symmetry import MirroredLegsActor, mirror_source
 
     d = torch.load(checkpoint, weights_only=False, map_location="cpu")
     cfg = TrainConfig.from_dict(d["train_config"])
     actor = _actor_from_checkpoint(d, cfg)
+    meta = build_metadata(Path(out_stem).name.removesuffix(".onnx"), cfg, int(d.get("seed", 0)),
+                          int(d["iter"]), legs)
+    if mirror_legs:
+        pairs = {g: mirror_source(g) for g in mirror_legs}
+        actor = MirroredLegsActor(actor, meta["observation"]["terms"], pairs).eval()
+        meta["mirrored_legs"] = pairs
     out_stem = Path(out_stem)
     name = out_stem.name.removesuffix(".onnx")
     onnx_path = out_stem.with_name(name + ".onnx")
@@ -146,7 +156,6 @@ def export_policy(checkpoint: str | Path, out_stem: str | Path,
         if y.shape != (n, 12) or not np.allclose(y, ref, atol=1e-4, rtol=1e-4):
             raise RuntimeError(f"onnxruntime disagrees with torch (batch {n}): "
                                f"max err {np.abs(y - ref).max():.2e}")
-    meta = build_metadata(name, cfg, int(d.get("seed", 0)), int(d["iter"]), legs)
     meta["training_history"] = [
         {k: h[k] for k in ("iteration", "mean_step_reward", "mean_episode_reward",
                            "mean_episode_length_s", "stage")}

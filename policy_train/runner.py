@@ -25,6 +25,7 @@ from tensordict import TensorDict
 
 from policy_train.config import TrainConfig
 from policy_train.env import TripodEnv
+from policy_train.symmetry import mirror_augmentation
 
 __all__ = ["TorchVecEnv", "Trainer", "rsl_train_cfg"]
 
@@ -75,6 +76,9 @@ def rsl_train_cfg(cfg: TrainConfig) -> dict:
             "entropy_coef": p.entropy_coef, "learning_rate": p.learning_rate,
             "max_grad_norm": p.max_grad_norm, "use_clipped_value_loss": True,
             "schedule": "adaptive", "desired_kl": p.desired_kl,
+            "symmetry_cfg": {"use_data_augmentation": True, "use_mirror_loss": False,
+                             "data_augmentation_func": mirror_augmentation}
+            if p.mirror_augmentation else None,
         },
         "actor": {
             "class_name": "MLPModel", "hidden_dims": list(p.actor_hidden), "activation": "elu",

@@ -22,6 +22,7 @@ from calib.metrics import geodesic_error_deg
 from calib.result import CalibrationResult
 from deploy.hold_policy import write_hold_policy
 from deploy.lift_schedule import LiftSchedule
+from deploy.cli import ALL_LEGS_ORDER
 from deploy.policy import PolicyMeta, policies_for_legs
 from deploy.runtime import DeployConfig, DeployError, DeployRunner, ImuPort
 from deploy.session import SessionConfig, State
@@ -288,9 +289,9 @@ def _trained_policies():
 def test_robot_on_the_floor_all_legs_recover_mounting(tmp_path):
     robot = start_mock(seed=21, base="free")
     try:
-        result = deploy(robot, None, ["FL", "FR", "RL", "RR"], tmp_path,
-                        session=SessionConfig(), periods=1)
+        result = deploy(robot, None, ALL_LEGS_ORDER, tmp_path, session=SessionConfig(),
+                        periods=1)
     finally:
         robot.stop()
     assert result.fault is None, result.fault
-    check_against_truth(result, robot, tmp_path, ["FL", "FR", "RL", "RR"])
+    check_against_truth(result, robot, tmp_path, ALL_LEGS_ORDER)

@@ -4,6 +4,7 @@ positions, metadata round trip, and the batched core equal to the per-robot call
 import numpy as np
 import pytest
 
+from calib.excitation import ExcitationConfig, foot_position_mirrored, stance_foot_z
 from deploy.lift_schedule import PHASES, LiftSchedule, blend_targets
 
 
@@ -56,6 +57,19 @@ def test_metadata_round_trip_and_errors(sched):
         sched.targets("FL", -1.0, Q_START)
     with pytest.raises(ValueError):
         sched.targets("XX", 1.0, Q_START)
+
+
+def test_ground_clearance_reaches_the_plans():
+    # a JSON written before the field existed means the generator's default (v1-v4 plans)
+    old = {k: v for k, v in LiftSchedule().to_metadata().items() if k != "ground_clearance"}
+    assert LiftSchedule.from_metadata(old).ground_clearance == ExcitationConfig.ground_clearance
+    high = LiftSchedule(periods=1, ground_clearance=0.12)
+    assert high.excitation_config("FL").ground_clearance == 0.12
+    lo, hi = LiftSchedule(periods=1).plan("FL"), high.plan("FL")
+    z = lambda plan: foot_position_mirrored(plan.positions(np.linspace(0, plan.duration, 800)))[:, 2]
+    assert z(hi).min() >= stance_foot_z() + 0.12 - 1e-3 > z(lo).min()
+    with pytest.raises(ValueError, match="ground_clearance"):
+        LiftSchedule(ground_clearance=-0.01)
 
 
 def test_batched_core_matches(sched):

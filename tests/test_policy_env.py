@@ -4,10 +4,12 @@ terminations, and the signs of the reward terms on hand-made states."""
 import numpy as np
 import pytest
 
+from calib.excitation import ExcitationConfig
 from calib.joints import model_to_sdk
 from policy_train import rewards as R
 from policy_train.config import EnvConfig, RewardConfig, TrainConfig
 from policy_train.env import TripodEnv
+from policy_train.model import ARMATURE
 
 
 @pytest.fixture(scope="module")
@@ -120,6 +122,11 @@ def test_domain_randomisation_applied(env):
     np.testing.assert_allclose(fr, env.friction)
     mass = env.batch.expanded("body_mass")[:, env.tm.base_body]
     assert np.ptp(mass) > 0.1
+    # joint armature per robot (all 12 joints alike), inside the range; the free base has none
+    arm = env.batch.expanded("dof_armature")
+    lo, hi = env.cfg.dr.armature
+    assert np.all(arm[:, :6] == 0) and np.all(arm[:, 6:] == arm[:, 6:7])
+    assert np.all((arm[:, 6] >= lo) & (arm[:, 6] <= hi)) and np.ptp(arm[:, 6]) > 0.002
     assert set(np.unique(env.latency)) <= set(range(5))
     gain = env.batch.expanded("actuator_gainprm")[:, 0, 0]
     assert np.ptp(gain) > 0
@@ -197,6 +204,16 @@ def test_old_configs_load_without_v2_terms():
     rw = TrainConfig.from_dict(d).env.rewards
     assert rw.upright == rw.ang_vel_xy == rw.lift_clearance == rw.support == 0.0
     assert TrainConfig.from_dict(TrainConfig().to_dict()).env.rewards == RewardConfig()
+
+
+def test_old_configs_keep_their_plan_clearance_and_armature():
+    d = TrainConfig().to_dict()
+    del d["env"]["ground_clearance"]
+    del d["env"]["dr"]["armature"]
+    old = TrainConfig.from_dict(d).env
+    assert old.ground_clearance == ExcitationConfig.ground_clearance
+    assert old.dr.armature == (ARMATURE, ARMATURE)
+    assert TrainConfig.from_dict(TrainConfig().to_dict()).env.ground_clearance == 0.12
 
 
 def test_com_and_v2_terms_in_env(env):

@@ -59,6 +59,8 @@ def test_json_meets_the_contract(exported):
     assert lin["name"] == "base_lin_vel" and lin["source"] == "zero"
     sched = LiftSchedule.from_metadata(meta["lift_schedule"])
     assert sched.periods >= 1
+    # deploy plays the excitation with the clearance the policy was trained on
+    assert sched.ground_clearance == meta["train_config"]["env"]["ground_clearance"]
     sig = {t["name"]: np.zeros(t["size"]) for t in meta["observation"]["terms"]}
     assert build_observation(meta["observation"], sig).shape == (49,)
 
@@ -100,3 +102,37 @@ def test_cli_missing_inputs_exit_2_with_one_line(tmp_path):
             main(argv)
         assert exc.value.code == 2
     assert not list(tmp_path.iterdir())
+
+
+def test_mirrored_legs_export_plays_the_other_side_mirrored(exported, tmp_path):
+    """`export --mirror-legs FR`: the graph answers an FR lift with the mirror image of what
+    the network does for the mirrored (FL) observation, and anything else unchanged."""
+    import torch
+
+    from policy_train.cli import main
+    from policy_train.symmetry import ActionMirror, Mirror, _policy_terms
+
+    d, _ = exported
+    assert main(["export", str(d / "run" / "model_2.pt"), "--out", str(tmp_path / "m"),
+                 "--mirror-legs", "FR"]) == 0
+    meta = json.loads((tmp_path / "m.json").read_text())
+    assert meta["mirrored_legs"] == {"FR": "FL"}
+    plain = ort.InferenceSession(str(d / "pol.onnx"), providers=["CPUExecutionProvider"])
+    mirr = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])
+    terms, scale = _policy_terms(meta["observation"]["terms"])
+    m_obs, m_act = Mirror(terms, scale), ActionMirror()
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(5, 49)).astype(np.float32)
+    run = lambda s, o: s.run(None, {"obs": o})[0]
+    for leg, value in meta["lift_command"].items():
+        x[:, -1] = value * scale
+        got = run(mirr, x)
+        if leg == "FR":
+            mo = m_obs(torch.from_numpy(x)).numpy()
+            want = m_act(torch.from_numpy(run(plain, mo))).numpy()
+        else:
+            want = run(plain, x)
+        np.testing.assert_allclose(got, want, atol=1e-5, err_msg=leg)
+    with pytest.raises(SystemExit):
+        main(["export", str(d / "run" / "model_2.pt"), "--out", str(tmp_path / "x"),
+              "--mirror-legs", "XX"])
