@@ -20,9 +20,9 @@ pytest.importorskip("onnx")
 
 from calib.metrics import geodesic_error_deg
 from calib.result import CalibrationResult
+from deploy.cli import ALL_LEGS_ORDER
 from deploy.hold_policy import write_hold_policy
 from deploy.lift_schedule import LiftSchedule
-from deploy.cli import ALL_LEGS_ORDER
 from deploy.policy import PolicyMeta, policies_for_legs
 from deploy.runtime import DeployConfig, DeployError, DeployRunner, ImuPort
 from deploy.session import SessionConfig, State

@@ -80,7 +80,7 @@ def test_mirrored_actions_keep_the_states_mirrored(env):
     _, acts = mirror_augmentation(env, None, torch.from_numpy(a[None]))
     for _ in range(3):
         env.step(acts.numpy())
-    mp, mv = _mirror_state(env.qpos[0], env.qvel[0])
+    mp, _ = _mirror_state(env.qpos[0], env.qvel[0])
     # the Go2 model is symmetric up to the base's inertial offset (mm): physics agrees
     np.testing.assert_allclose(env.qpos[1, 7:19], mp[7:19], atol=5e-3)
     np.testing.assert_allclose(env.qpos[1, :3], mp[:3], atol=5e-3)
