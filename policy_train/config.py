@@ -9,6 +9,8 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 
+from calib.excitation import ExcitationConfig
+
 __all__ = ["DRConfig", "EnvConfig", "PPOConfig", "RewardConfig", "TrainConfig"]
 
 
@@ -177,7 +179,7 @@ class TrainConfig:
         e.setdefault("p_reference_start", 0.0)
         e.setdefault("p_reference_shift", 0.0)
         e.setdefault("lift_leg_weights", (1.0, 1.0, 1.0, 1.0))
-        e.setdefault("ground_clearance", 0.08)  # the excitation generator's default then
+        e.setdefault("ground_clearance", ExcitationConfig.ground_clearance)  # the default then
         dr = {k: tuple(v) if isinstance(v, list) else v for k, v in e.pop("dr").items()}
         dr.setdefault("armature", (0.01, 0.01))  # fixed at the model's ARMATURE before v5
         e = {k: tuple(v) if isinstance(v, list) else v for k, v in e.items()}

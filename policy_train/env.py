@@ -67,7 +67,8 @@ class PlanPool:
     """
 
     def __init__(self, per_leg: int, t_r_range, n_basis: int, periods: int, dt: float,
-                 rng: np.random.Generator, ground_clearance: float = 0.08):
+                 rng: np.random.Generator,
+                 ground_clearance: float = ExcitationConfig.ground_clearance):
         qs, dqs, self.leg, self.duration, self.t_r = [], [], [], [], []
         for li, leg in enumerate(MODEL_LEGS):
             for _ in range(per_leg):

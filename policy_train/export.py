@@ -124,14 +124,13 @@ def export_policy(checkpoint: str | Path, out_stem: str | Path,
     d = torch.load(checkpoint, weights_only=False, map_location="cpu")
     cfg = TrainConfig.from_dict(d["train_config"])
     actor = _actor_from_checkpoint(d, cfg)
-    meta = build_metadata(Path(out_stem).name.removesuffix(".onnx"), cfg, int(d.get("seed", 0)),
-                          int(d["iter"]), legs)
+    out_stem = Path(out_stem)
+    name = out_stem.name.removesuffix(".onnx")
+    meta = build_metadata(name, cfg, int(d.get("seed", 0)), int(d["iter"]), legs)
     if mirror_legs:
         pairs = {g: mirror_source(g) for g in mirror_legs}
         actor = MirroredLegsActor(actor, meta["observation"]["terms"], pairs).eval()
         meta["mirrored_legs"] = pairs
-    out_stem = Path(out_stem)
-    name = out_stem.name.removesuffix(".onnx")
     onnx_path = out_stem.with_name(name + ".onnx")
     json_path = out_stem.with_name(name + ".json")
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
