@@ -142,6 +142,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
         }
     result = {"policy": onnx_path.name, "episodes_per_leg": episodes, "seed": seed,
               "domain_randomisation": not nominal,
+              "armature_kg_m2": [float(x) for x in cfg.dr.armature],
               "motion_s": total, "t_r": sched.t_r, "periods": sched.periods,
               "wall_s": time.time() - t0, "legs": rows, "targets": TARGETS}
     table = format_table(result)
@@ -176,6 +177,11 @@ def _rms(sum_sq: np.ndarray, count: np.ndarray) -> float:
     return float(np.sqrt(sum_sq.sum() / n)) if n > 0 else float("nan")
 
 
+def _armature(r: dict) -> str:
+    lo, hi = r.get("armature_kg_m2", (0.01, 0.01))
+    return f"joint armature {lo:g} kg m^2" if lo == hi else f"joint armature {lo:g}-{hi:g} kg m^2"
+
+
 def _mark(ok: bool) -> str:
     return "ok" if ok else "MISS"
 
@@ -204,8 +210,8 @@ Policy `{r['policy']}` (commit `{meta.get('commit')}`, seed {meta.get('seed')},
 `a2i-train eval policies/{r['policy']} --episodes {r['episodes_per_leg']}` (seed {r['seed']}):
 the ONNX through onnxruntime, the JSON's observation terms, action and lift schedule.
 
-Each episode: domain randomisation as in training (masses, centre of mass, friction, kp/kd,
-motor strength, 0-20 ms latency, pushes, observation noise), the lift command at t = 0 and one
+Each episode: domain randomisation as in training (masses, centre of mass, {_armature(r)},
+friction, kp/kd, motor strength, 0-20 ms latency, pushes, observation noise), the lift command at t = 0 and one
 full calibration motion: shift, lift, hold, the anti-noise excitation (t_r = {r['t_r']} s,
 {r['periods']} periods), lower; {r['motion_s']:.1f} s in all. Success = no fall, no contact but
 the feet, the lifted foot never down during hold and excitation. Tilt, angular rate and
