@@ -27,7 +27,7 @@ from calib.joints import MODEL_LEGS, SDK_LEGS, check_leg
 from policy_train.env import LIFT_VALUES, PRIV_TERMS
 
 __all__ = ["ActionMirror", "Mirror", "MirroredLegsActor", "joint_mirror", "mirror_augmentation",
-           "mirror_source"]
+           "mirror_source", "policy_terms"]
 
 _SWAP = {"FL": "FR", "FR": "FL", "RL": "RR", "RR": "RL"}
 _POLAR = np.array([1.0, -1.0, 1.0])
@@ -144,7 +144,7 @@ class MirroredLegsActor(torch.nn.Module):
         for leg, src in mirror_legs.items():
             if _SWAP.get(leg) != src:
                 raise ValueError(f"{leg} can only mirror {_SWAP.get(leg, '?')}, not {src}")
-        terms, scale = _policy_terms(obs_terms)
+        terms, scale = policy_terms(obs_terms)
         self.actor = actor
         self.obs_mirror = Mirror(terms, scale)
         if self.obs_mirror.lift_at is None:
@@ -161,7 +161,9 @@ class MirroredLegsActor(torch.nn.Module):
         return torch.where(use, am, a)
 
 
-def _policy_terms(obs_terms) -> tuple[list[tuple[str, int]], float]:
+def policy_terms(obs_terms) -> tuple[list[tuple[str, int]], float | None]:
+    """(name, size) of each observation term (the JSON's ``observation.terms``) and the
+    ``lift_command`` term's scale (None without one)."""
     terms = [(t["name"], int(t["size"])) for t in obs_terms]
     lift = [t for t in obs_terms if t["name"] == "lift_command"]
     scale = float(np.ravel(lift[0]["scale"])[0]) if lift else None
@@ -170,7 +172,7 @@ def _policy_terms(obs_terms) -> tuple[list[tuple[str, int]], float]:
 
 class _Mirrors:
     def __init__(self, env):
-        terms, scale = _policy_terms(env.obs_terms)
+        terms, scale = policy_terms(env.obs_terms)
         self.policy = Mirror(terms, scale)
         self.critic = Mirror(terms + list(PRIV_TERMS), scale)
         self.action = ActionMirror()

@@ -110,7 +110,7 @@ def test_mirrored_legs_export_plays_the_other_side_mirrored(exported, tmp_path):
     import torch
 
     from policy_train.cli import main
-    from policy_train.symmetry import ActionMirror, Mirror, _policy_terms
+    from policy_train.symmetry import ActionMirror, Mirror, policy_terms
 
     d, _ = exported
     assert main(["export", str(d / "run" / "model_2.pt"), "--out", str(tmp_path / "m"),
@@ -119,7 +119,7 @@ def test_mirrored_legs_export_plays_the_other_side_mirrored(exported, tmp_path):
     assert meta["mirrored_legs"] == {"FR": "FL"}
     plain = ort.InferenceSession(str(d / "pol.onnx"), providers=["CPUExecutionProvider"])
     mirr = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])
-    terms, scale = _policy_terms(meta["observation"]["terms"])
+    terms, scale = policy_terms(meta["observation"]["terms"])
     m_obs, m_act = Mirror(terms, scale), ActionMirror()
     rng = np.random.default_rng(2)
     x = rng.normal(size=(5, 49)).astype(np.float32)
@@ -136,3 +136,14 @@ def test_mirrored_legs_export_plays_the_other_side_mirrored(exported, tmp_path):
     with pytest.raises(SystemExit):
         main(["export", str(d / "run" / "model_2.pt"), "--out", str(tmp_path / "x"),
               "--mirror-legs", "XX"])
+
+
+@pytest.mark.parametrize("weights", ["1,2", "1,1,1,-1", "0,0,0,0", "a,b,c,d"])
+def test_bad_lift_leg_weights_exit_2_with_one_line(weights, capsys):
+    from policy_train.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["tripod", "--lift-leg-weights", weights, "--iterations", "1"])
+    assert exc.value.code == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(err) == 1 and "FL,FR,RL,RR" in err[0]
