@@ -37,7 +37,7 @@ def _tripod(a) -> int:
             cfg.env.dr = DRConfig()
             for k in ("terminate_on_contact", "p_reference_start", "reference_margin_m",
                       "reference_joint_noise", "p_reference_shift", "lift_leg_weights",
-                      "ground_clearance"):
+                      "ground_clearance", "train_periods"):
                 setattr(cfg.env, k, getattr(fresh, k))
     overrides = {"num_envs": (cfg.env, "num_envs"), "plans_per_leg": (cfg.env, "plans_per_leg"),
                  "save_interval": (cfg.ppo, "save_interval"),
@@ -48,8 +48,8 @@ def _tripod(a) -> int:
     for arg, (section, field) in overrides.items():
         if getattr(a, arg) is not None:
             setattr(section, field, getattr(a, arg))
-    if a.mirror_augmentation:
-        cfg.ppo.mirror_augmentation = True
+    if a.mirror_augmentation is not None:
+        cfg.ppo.mirror_augmentation = a.mirror_augmentation
     run_dir = Path(a.run_dir or f"runs/tripod_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
     t0 = time.time()
     tr = Trainer(cfg, run_dir, seed=a.seed, log=lambda s: print(s, flush=True))
@@ -149,9 +149,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="with --resume: use the current reward weights, episode settings (contact "
                         "terminations, reference starts, ...) and domain randomisation, not the "
                         "checkpoint's")
-    t.add_argument("--mirror-augmentation", action="store_true",
-                   help="with --resume: train on the left-right mirrored samples too (the "
-                        "default for new runs; checkpoints from before v5 did not)")
+    t.add_argument("--mirror-augmentation", action=argparse.BooleanOptionalAction, default=None,
+                   help="train on the left-right mirrored samples too (default: on for new runs, "
+                        "the checkpoint's setting with --resume; before v5 it was off). Off "
+                        "pays when the exported graph mirrors the other side's legs anyway")
     t.add_argument("--run-dir", default=None)
     t.add_argument("--export", default=None, help="after training, export to this path stem")
     e = sub.add_parser("export", help="export a checkpoint to ONNX + JSON")

@@ -66,15 +66,18 @@ class PlanPool:
     leg[k]: model leg index; duration[k] s.
     """
 
-    def __init__(self, per_leg: int, t_r_range, n_basis: int, periods: int, dt: float,
+    def __init__(self, per_leg: int, t_r_range, n_basis: int, periods, dt: float,
                  rng: np.random.Generator,
                  ground_clearance: float = ExcitationConfig.ground_clearance):
+        """periods: count per plan, or an inclusive (low, high) range drawn per plan."""
+        lo, hi = (periods, periods) if np.isscalar(periods) else periods
         qs, dqs, self.leg, self.duration, self.t_r = [], [], [], [], []
         for li, leg in enumerate(MODEL_LEGS):
             for _ in range(per_leg):
                 t_r = float(rng.uniform(*t_r_range))
+                k = int(lo) if lo == hi else int(rng.integers(lo, hi + 1))
                 plan = plan_excitation(ExcitationConfig(
-                    leg=leg, t_r=t_r, n_basis=n_basis, periods=periods,
+                    leg=leg, t_r=t_r, n_basis=n_basis, periods=k,
                     seed=int(rng.integers(1 << 30)), ground_clearance=ground_clearance))
                 t = np.arange(int(np.ceil(plan.duration / dt)) + 1) * dt
                 qs.append(plan.positions(t))

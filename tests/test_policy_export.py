@@ -32,6 +32,20 @@ def test_checkpoints_and_progress(exported):
     assert "steps/s" in out
 
 
+def test_resume_in_phase_2_stays_there(exported):
+    """A planned total that puts phase 2 later than the checkpoint must not send a run that
+    was already playing calibration motions back to tripod-only training."""
+    d, out = exported
+    assert "stage 2" in next(x for x in out.splitlines() if x.startswith("it     2"))
+    cmd = [sys.executable, "-m", "policy_train.cli", "tripod", "--resume", str(d / "run" / "model_2.pt"),
+           "--iterations", "1", "--total-iterations", "40", "--num-envs", "8",
+           "--plans-per-leg", "1", "--steps-per-env", "8", "--run-dir", str(d / "resumed")]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    line = next(x for x in p.stdout.splitlines() if x.startswith("it     3"))
+    assert "stage 2" in line
+
+
 def test_onnx_single_file_dynamic_batch(exported):
     d, _ = exported
     m = onnx.load(str(d / "pol.onnx"))
