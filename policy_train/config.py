@@ -109,8 +109,8 @@ class EnvConfig:
     # the stand height, 0.34 m below the hips); the tripod stands at base_height_target 0.31 m,
     # so 0.12 keeps the foot ~7 cm off the floor where the default 0.08 left 3-4 cm (v1-v4)
     ground_clearance: float = 0.12
-    # periods per training plan, drawn per plan from this range (inclusive). v1-v6 used 1 (one
-    # plan fits a 10 s command window); deploy plays 4 (18 s), and the v6 evaluation failed
+    # periods per training plan, drawn per plan from this range (inclusive). v1-v5 used 1 (one
+    # plan fits a 10 s command window); deploy plays 4 (18 s), and their evaluations failed
     # mostly after the first period, where those policies had never been trained. A lifted
     # leg finishes its schedule past the command resample, so longer plans run to the end
     # (or to the episode's time-out)
@@ -186,7 +186,7 @@ class TrainConfig:
         e.setdefault("lift_leg_weights", (1.0, 1.0, 1.0, 1.0))
         e.setdefault("ground_clearance", ExcitationConfig.ground_clearance)  # the default then
         e.setdefault("train_periods", 1)
-        if isinstance(e["train_periods"], int):  # a single count before v7
+        if isinstance(e["train_periods"], int):  # a single count before v6
             e["train_periods"] = (e["train_periods"], e["train_periods"])
         dr = {k: tuple(v) if isinstance(v, list) else v for k, v in e.pop("dr").items()}
         dr.setdefault("armature", (0.01, 0.01))  # fixed at the model's ARMATURE before v5

@@ -140,7 +140,7 @@ class Trainer:
         if self.history and self.history[-1].get("stage") == 2:
             # resumed in phase 2: never back to tripod-only training, whatever the planned
             # total (a resume with a total below the checkpoint's iteration once re-planned
-            # phase 1 and trained 480 iterations without calibration motions)
+            # phase 1 and trained 476 iterations without calibration motions)
             stage1_end = min(stage1_end, start)
         obs = self.venv.get_observations()
         self.alg.train_mode()
