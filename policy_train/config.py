@@ -110,8 +110,8 @@ class EnvConfig:
     # so 0.12 keeps the foot ~7 cm off the floor where the default 0.08 left 3-4 cm (v1-v4)
     ground_clearance: float = 0.12
     # periods per training plan, drawn per plan from this range (inclusive). v1-v5 used 1 (one
-    # plan fits a 10 s command window); deploy plays 4 (18 s), and their evaluations failed
-    # mostly after the first period, where those policies had never been trained. A lifted
+    # plan fits a 10 s command window); deploy plays 4 (18 s), and a one-period policy's evaluation
+    # failed mostly after the first period, where it had never been trained. A lifted
     # leg finishes its schedule past the command resample, so longer plans run to the end
     # (or to the episode's time-out)
     train_periods: tuple[int, int] = (1, 4)
