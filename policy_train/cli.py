@@ -1,8 +1,9 @@
 """``a2i-train``: train, export and evaluate the tripod calibration-action policy.
 
   a2i-train tripod [--iterations N] [--seed S] [--num-envs N] [--resume CKPT [--new-rewards]]
-                   [--lift-leg-weights FL,FR,RL,RR] [--run-dir D] [--export policies/NAME]
-  a2i-train export CHECKPOINT --out policies/NAME [--legs RL,RR] [--mirror-legs FR]
+                   [--lift-leg-weights FL,FR,RL,RR] [--[no-]mirror-augmentation] [--run-dir D]
+                   [--export policies/NAME]
+  a2i-train export CHECKPOINT --out policies/NAME [--legs RL,RR] [--mirror-legs FR,RR]
   a2i-train eval policies/NAME.onnx [--episodes 100] [--legs FL,FR,RL,RR] [--no-write]
   a2i-train pack OUTDIR            (compiled model + plan pool for a machine without the URDF)
 
