@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from policy_train.config import DR_GROUPS
+
 __all__ = ["main"]
 
 
@@ -102,8 +104,19 @@ def _eval(a) -> int:
     from policy_train.evaluate import evaluate_policy
 
     evaluate_policy(a.onnx, episodes=a.episodes, legs=a.legs, seed=a.seed,
-                    write=not a.no_write, results_path=a.results, nominal=a.nominal)
+                    write=not a.no_write, results_path=a.results, nominal=a.nominal,
+                    dr_off=a.dr_off)
     return 0
+
+
+def _dr_groups(text: str) -> tuple[str, ...]:
+    """argparse type: comma-separated groups of ``config.DR_GROUPS``."""
+    groups = tuple(g.strip() for g in text.split(",") if g.strip())
+    bad = [g for g in groups if g not in DR_GROUPS]
+    if bad or not groups:
+        raise argparse.ArgumentTypeError(
+            f"unknown group {', '.join(bad) or repr(text)}; known: {', '.join(DR_GROUPS)}")
+    return groups
 
 
 def _leg_list(text: str) -> tuple[str, ...]:
@@ -173,6 +186,9 @@ def main(argv: list[str] | None = None) -> int:
     v.add_argument("--no-write", action="store_true", help="do not write results files")
     v.add_argument("--nominal", action="store_true",
                    help="no domain randomisation (writes only the JSON's evaluation_nominal)")
+    v.add_argument("--dr-off", type=_dr_groups, default=(), metavar="GROUP[,GROUP]",
+                   help="hold these randomisation groups nominal, to see what each costs "
+                        f"({', '.join(DR_GROUPS)}); writes nothing")
     v.add_argument("--results", default="docs/results/policy.md")
     k = sub.add_parser("pack", help="compiled model + plan pool for a remote training machine")
     k.add_argument("outdir")
@@ -184,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
         path = getattr(a, name, None)
         if path is not None and not Path(path).is_file():
             p.error(f"{name} {path}: no such file")
+    if a.cmd == "eval" and a.nominal and a.dr_off:
+        p.error("--dr-off needs the randomisation on: drop --nominal")
     if a.cmd == "eval" and not Path(a.onnx).with_suffix(".json").is_file():
         p.error(f"{Path(a.onnx).with_suffix('.json')}: no policy metadata beside the ONNX file")
     try:

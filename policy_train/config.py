@@ -7,11 +7,11 @@ explained in ``docs/policy-training.md``.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 from calib.excitation import ExcitationConfig
 
-__all__ = ["DRConfig", "EnvConfig", "PPOConfig", "RewardConfig", "TrainConfig"]
+__all__ = ["DR_GROUPS", "DRConfig", "EnvConfig", "PPOConfig", "RewardConfig", "TrainConfig"]
 
 
 @dataclass
@@ -74,6 +74,33 @@ class DRConfig:
     noise_gravity: float = 0.05
     noise_joint_pos: float = 0.01                           # rad
     noise_joint_vel: float = 1.5                            # rad/s
+
+    def without(self, *groups: str) -> DRConfig:
+        """A copy with the named groups of ``DR_GROUPS`` at their nominal values."""
+        unknown = [g for g in groups if g not in DR_GROUPS]
+        if unknown:
+            raise ValueError(f"unknown randomisation group(s) {', '.join(unknown)}; "
+                             f"known: {', '.join(DR_GROUPS)}")
+        out = replace(self)
+        for g in groups:
+            for k, v in DR_GROUPS[g].items():
+                setattr(out, k, v)
+        return out
+
+
+# the randomisation in groups that can be switched off one at a time (``a2i-train eval
+# --dr-off``), to see which one costs the policy what: each maps fields to nominal values
+DR_GROUPS: dict[str, dict] = {
+    "masses": {"base_mass_add": (0.0, 0.0), "link_mass_scale": (1.0, 1.0),
+               "base_com_offset": (0.0, 0.0, 0.0)},
+    "armature": {"armature": (0.01, 0.01)},
+    "friction": {"friction": (0.8, 0.8)},
+    "gains": {"kp_scale": (1.0, 1.0), "kd_scale": (1.0, 1.0), "motor_strength": (1.0, 1.0)},
+    "latency": {"latency_steps": (0, 0)},
+    "pushes": {"push_vel": 0.0},
+    "obs_noise": {"noise_ang_vel": 0.0, "noise_gravity": 0.0, "noise_joint_pos": 0.0,
+                  "noise_joint_vel": 0.0},
+}
 
 
 @dataclass

@@ -106,6 +106,36 @@ def test_nominal_eval_goes_to_the_json_then_the_report(exported, tmp_path):
     assert "Without domain randomisation" in text and text.count("| RR |") == 2
 
 
+def test_dr_off_evaluates_without_the_group_and_writes_nothing(exported, tmp_path):
+    d, _ = exported
+    from policy_train.config import DRConfig
+    from policy_train.evaluate import evaluate_policy
+
+    dr = DRConfig().without("pushes", "obs_noise")
+    assert dr.push_vel == 0.0 and dr.noise_joint_vel == 0.0 and dr.latency_steps == (0, 4)
+    with pytest.raises(ValueError, match="unknown randomisation group"):
+        DRConfig().without("wind")
+    before = (d / "pol.json").read_text()
+    out = tmp_path / "policy.md"
+    r = evaluate_policy(d / "pol.onnx", episodes=1, legs=("FL",), results_path=out,
+                        log=lambda s: None, dr_off=("latency",))
+    assert r["dr_off"] == ["latency"] and not out.exists()
+    assert (d / "pol.json").read_text() == before
+
+
+def test_table_shows_the_held_figures_and_reads_older_evaluations():
+    from policy_train.evaluate import format_table
+
+    row = {"episodes": 100, "success": 0.8, "falls": 10, "other_contact": 12,
+           "lifted_foot_touch": 4, "tilt_rms_deg": 2.5, "ang_rate_rms": 0.45, "track_rmse": 0.02,
+           "cn_median": 1.15, "cn_p90": 1.25}
+    new = format_table({"legs": {"FL": {**row, "tilt_rms_deg_held": 1.9,
+                                        "ang_rate_rms_held": 0.081}}})
+    assert "| 2.50 ok (1.90) | 0.450 MISS (0.081) |" in new
+    old = format_table({"legs": {"FL": row}})  # stored before the held figures existed
+    assert "| 2.50 ok | 0.450 MISS |" in old
+
+
 def test_cli_missing_inputs_exit_2_with_one_line(tmp_path):
     from policy_train.cli import main
 
