@@ -170,7 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--run-dir", default=None)
     t.add_argument("--export", default=None, help="after training, export to this path stem")
     e = sub.add_parser("export", help="export a checkpoint to ONNX + JSON")
-    e.add_argument("checkpoint")
+    e.add_argument("checkpoint", nargs="+",
+                   help="a checkpoint, or several of one run: their actor weights averaged")
     e.add_argument("--out", required=True, help="path stem, e.g. policies/tripod_v1")
     e.add_argument("--legs", type=_leg_list, default=None,
                    help="legs deploy may lift with it, e.g. RL,RR (default: all four)")
@@ -197,9 +198,10 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
     # Input files named on the command line must exist: say so in one line, exit 2.
     for name in ("checkpoint", "onnx", "resume"):
-        path = getattr(a, name, None)
-        if path is not None and not Path(path).is_file():
-            p.error(f"{name} {path}: no such file")
+        paths = getattr(a, name, None)
+        for path in [paths] if isinstance(paths, str) else paths or ():
+            if not Path(path).is_file():
+                p.error(f"{name} {path}: no such file")
     if a.cmd == "eval" and a.nominal and a.dr_off:
         p.error("--dr-off needs the randomisation on: drop --nominal")
     if a.cmd == "eval" and not Path(a.onnx).with_suffix(".json").is_file():

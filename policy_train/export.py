@@ -23,7 +23,7 @@ from deploy.lift_schedule import LiftSchedule
 from deploy.observation import OBS_SIZE
 from policy_train.config import TrainConfig
 
-__all__ = ["build_metadata", "export_policy", "git_commit"]
+__all__ = ["average_checkpoints", "build_metadata", "export_policy", "git_commit"]
 
 EVAL_T_R = 0.5       # s, the deploy schedule's excitation (calib defaults)
 EVAL_PERIODS = 4
@@ -48,6 +48,28 @@ def _actor_from_checkpoint(d: dict, cfg: TrainConfig) -> torch.nn.Module:
     if any(k.startswith("obs_normalizer.") for k in sd):
         raise ValueError("actor observation normalisation is not supported by this exporter")
     return _Actor(mlp).eval()
+
+
+def average_checkpoints(ckpts: list[dict]) -> dict:
+    """One checkpoint whose actor is the element-wise mean of the given ones' actor weights
+    (the last one's configuration, iteration and history). Neighbouring PPO checkpoints of one
+    run differ by 10-20 points of success under randomisation (docs/policy-training.md, v7);
+    their mean is steadier than any of them. They must come from one run: the same
+    configuration, network and keys."""
+    if not ckpts:
+        raise ValueError("no checkpoint to average")
+    last = max(ckpts, key=lambda d: int(d["iter"]))
+    shapes = {k: v.shape for k, v in last["actor_state_dict"].items()}
+    for d in ckpts:
+        if d["train_config"]["ppo"] != last["train_config"]["ppo"] or \
+                {k: v.shape for k, v in d["actor_state_dict"].items()} != shapes:
+            raise ValueError(f"checkpoint of iteration {d['iter']} has another PPO configuration "
+                             "or network than the others: average checkpoints of one run only")
+    sd = {k: (torch.stack([d["actor_state_dict"][k] for d in ckpts]).mean(0)
+              if v.is_floating_point() else v)
+          for k, v in last["actor_state_dict"].items()}
+    return {**last, "actor_state_dict": sd,
+            "averaged_iterations": sorted(int(d["iter"]) for d in ckpts)}
 
 
 def git_commit() -> str:
@@ -110,23 +132,29 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
     }
 
 
-def export_policy(checkpoint: str | Path, out_stem: str | Path,
+def export_policy(checkpoint, out_stem: str | Path,
                   legs=None, mirror_legs=None) -> tuple[Path, Path]:
-    """Write ``<out_stem>.onnx`` and ``<out_stem>.json`` from a training checkpoint; legs: the
-    JSON's ``legs`` (the legs deploy may lift with it; None: all four). mirror_legs: legs
-    whose lifts the graph plays as the mirror image of the opposite side's
-    (:class:`policy_train.symmetry.MirroredLegsActor`; the JSON's ``mirrored_legs``)."""
+    """Write ``<out_stem>.onnx`` and ``<out_stem>.json`` from a training checkpoint, or from
+    the weight average of several of one run (a list: :func:`average_checkpoints`; the JSON's
+    ``averaged_iterations``); legs: the JSON's ``legs`` (the legs deploy may lift with it;
+    None: all four). mirror_legs: legs whose lifts the graph plays as the mirror image of the
+    opposite side's (:class:`policy_train.symmetry.MirroredLegsActor`; the JSON's
+    ``mirrored_legs``)."""
     import onnx
     import onnxruntime as ort
 
     from policy_train.symmetry import MirroredLegsActor, mirror_source
 
-    d = torch.load(checkpoint, weights_only=False, map_location="cpu")
+    paths = [checkpoint] if isinstance(checkpoint, (str, Path)) else list(checkpoint)
+    loaded = [torch.load(c, weights_only=False, map_location="cpu") for c in paths]
+    d = loaded[0] if len(loaded) == 1 else average_checkpoints(loaded)
     cfg = TrainConfig.from_dict(d["train_config"])
     actor = _actor_from_checkpoint(d, cfg)
     out_stem = Path(out_stem)
     name = out_stem.name.removesuffix(".onnx")
     meta = build_metadata(name, cfg, int(d.get("seed", 0)), int(d["iter"]), legs)
+    if "averaged_iterations" in d:
+        meta["averaged_iterations"] = d["averaged_iterations"]
     if mirror_legs:
         pairs = {g: mirror_source(g) for g in mirror_legs}
         actor = MirroredLegsActor(actor, meta["observation"]["terms"], pairs).eval()

@@ -46,6 +46,38 @@ def test_resume_in_phase_2_stays_there(exported):
     assert "stage 2" in line
 
 
+def test_export_averages_the_checkpoints_of_one_run(exported, tmp_path):
+    """Several checkpoints export as one policy whose weights are their mean."""
+    import torch
+
+    from policy_train.config import TrainConfig
+    from policy_train.export import _actor_from_checkpoint, average_checkpoints
+
+    d, _ = exported
+    ckpts = [str(d / "run" / f"model_{i}.pt") for i in (1, 2)]
+    p = subprocess.run([sys.executable, "-m", "policy_train.cli", "export", *ckpts,
+                        "--out", str(tmp_path / "avg")], capture_output=True, text=True,
+                       timeout=240, check=False)
+    assert p.returncode == 0, p.stderr[-2000:]
+    meta = json.loads((tmp_path / "avg.json").read_text())
+    assert meta["averaged_iterations"] == [1, 2] and meta["iterations"] == 2
+    loaded = [torch.load(c, weights_only=False, map_location="cpu") for c in ckpts]
+    w = [c["actor_state_dict"]["mlp.0.weight"] for c in loaded]
+    assert not torch.equal(w[0], w[1])  # two PPO updates apart: the mean is a third network
+    mean = average_checkpoints(loaded)
+    assert torch.allclose(mean["actor_state_dict"]["mlp.0.weight"], (w[0] + w[1]) / 2)
+    x = np.random.default_rng(3).normal(0, 1, (4, 49)).astype(np.float32)
+    y = ort.InferenceSession(str(tmp_path / "avg.onnx"),
+                             providers=["CPUExecutionProvider"]).run(None, {"obs": x})[0]
+    actor = _actor_from_checkpoint(mean, TrainConfig.from_dict(mean["train_config"]))
+    with torch.no_grad():
+        assert np.allclose(y, actor(torch.from_numpy(x)).numpy(), atol=1e-5)
+    other = dict(loaded[0], train_config=json.loads(json.dumps(loaded[0]["train_config"])))
+    other["train_config"]["ppo"]["actor_hidden"] = [8]
+    with pytest.raises(ValueError, match="one run only"):
+        average_checkpoints([other, loaded[1]])
+
+
 def test_onnx_single_file_dynamic_batch(exported):
     d, _ = exported
     m = onnx.load(str(d / "pol.onnx"))
