@@ -169,6 +169,11 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     return result
 
 
+def _averaged(meta: dict) -> str:
+    its = meta.get("averaged_iterations")
+    return f"; the weight average of iterations {', '.join(map(str, its))}" if its else ""
+
+
 def _nominal_section(meta: dict) -> str:
     n = meta.get("evaluation_nominal")
     if not n or n.get("policy") != meta.get("onnx"):
@@ -226,7 +231,7 @@ def _report(r: dict, meta: dict, table: str) -> str:
     return f"""# Tripod policy evaluation
 
 Policy `{r['policy']}` (commit `{meta.get('commit')}`, seed {meta.get('seed')},
-{meta.get('iterations')} PPO iterations). Produced by
+{meta.get('iterations')} PPO iterations{_averaged(meta)}). Produced by
 `a2i-train eval policies/{r['policy']} --episodes {r['episodes_per_leg']}` (seed {r['seed']}):
 the ONNX through onnxruntime, the JSON's observation terms, action and lift schedule.
 
