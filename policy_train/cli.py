@@ -3,8 +3,10 @@
   a2i-train tripod [--iterations N] [--seed S] [--num-envs N] [--resume CKPT [--new-rewards]]
                    [--lift-leg-weights FL,FR,RL,RR] [--[no-]mirror-augmentation] [--run-dir D]
                    [--export policies/NAME]
-  a2i-train export CHECKPOINT --out policies/NAME [--legs RL,RR] [--mirror-legs FR,RR]
+  a2i-train export CHECKPOINT [CHECKPOINT ...] --out policies/NAME [--legs RL,RR]
+                   [--mirror-legs FR,RR]   (several checkpoints of one run: weights averaged)
   a2i-train eval policies/NAME.onnx [--episodes 100] [--legs FL,FR,RL,RR] [--no-write]
+                 [--nominal | --dr-off GROUP[,GROUP]]
   a2i-train pack OUTDIR            (compiled model + plan pool for a machine without the URDF)
 
 Checkpoints go to ``runs/<run>/model_<it>.pt`` (``runs/`` is not committed).
@@ -17,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from policy_train.config import DR_GROUPS
+from policy_train.config import DR_GROUPS, DRConfig
 
 __all__ = ["main"]
 
@@ -110,12 +112,15 @@ def _eval(a) -> int:
 
 
 def _dr_groups(text: str) -> tuple[str, ...]:
-    """argparse type: comma-separated groups of ``config.DR_GROUPS``."""
+    """argparse type: comma-separated groups of ``config.DR_GROUPS`` (checked by
+    ``DRConfig.without``, the one place that knows them)."""
     groups = tuple(g.strip() for g in text.split(",") if g.strip())
-    bad = [g for g in groups if g not in DR_GROUPS]
-    if bad or not groups:
-        raise argparse.ArgumentTypeError(
-            f"unknown group {', '.join(bad) or repr(text)}; known: {', '.join(DR_GROUPS)}")
+    if not groups:
+        raise argparse.ArgumentTypeError(f"no group in {text!r}")
+    try:
+        DRConfig().without(*groups)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
     return groups
 
 

@@ -157,9 +157,8 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
               "wall_s": time.time() - t0, "legs": rows, "targets": TARGETS}
     table = format_table(result)
     log(table)
-    if dr_off:
-        pass  # a diagnosis, not the policy's evaluation
-    elif write and nominal:
+    write = write and not dr_off  # a diagnosis, not the policy's evaluation
+    if write and nominal:
         meta["evaluation_nominal"] = result
         write_text_atomic(onnx_path.with_suffix(".json"), json.dumps(meta, indent=1) + "\n")
     elif write:
@@ -203,9 +202,9 @@ def _mark(ok: bool) -> str:
     return "ok" if ok else "MISS"
 
 
-def _held(x: dict, key: str) -> str:
+def _held(x: dict, key: str, digits: int) -> str:
     v = x.get(key)  # evaluations before v7 did not store it
-    return "" if v is None else f" ({v:.{3 if 'rate' in key else 2}f})"
+    return "" if v is None else f" ({v:.{digits}f})"
 
 
 def format_table(r: dict) -> str:
@@ -219,9 +218,9 @@ def format_table(r: dict) -> str:
             f"| {leg} | {100 * x['success']:.0f} % {_mark(x['success'] >= t['success'])} "
             f"| {x['falls']} | {x['other_contact']} | {x['lifted_foot_touch']} "
             f"| {x['tilt_rms_deg']:.2f} {_mark(x['tilt_rms_deg'] <= t['tilt_rms_deg'])}"
-            f"{_held(x, 'tilt_rms_deg_held')} "
+            f"{_held(x, 'tilt_rms_deg_held', 2)} "
             f"| {x['ang_rate_rms']:.3f} {_mark(x['ang_rate_rms'] <= t['ang_rate_rms'])}"
-            f"{_held(x, 'ang_rate_rms_held')} "
+            f"{_held(x, 'ang_rate_rms_held', 3)} "
             f"| {x['track_rmse']:.3f} {_mark(x['track_rmse'] <= t['track_rmse'])} "
             f"| {x['cn_median']:.3f} ({x['cn_p90']:.3f}) {_mark(x['cn_p90'] <= t['cn'])} |")
     return "\n".join(lines)
