@@ -229,6 +229,8 @@ class TripodEnv:
         self.mass_add = z(N)
         self.foot_touch = np.zeros((N, 4), dtype=bool)
         self.other_touch = np.zeros(N, dtype=bool)
+        # which non-foot geoms (train_model.collision_geoms) pressed on the floor in the step
+        self.geom_touch = np.zeros((N, len(self.tm.collision_geoms)), dtype=bool)
         self.base_touch = np.zeros(N, dtype=bool)
         self.lift_q_des = np.full((N, 3), np.nan)
         self.episode_sums: dict[str, np.ndarray] = {}
@@ -409,7 +411,7 @@ class TripodEnv:
         kp = (cfg.kp * self.kp_s * self.strength)[:, None].repeat(12, 1)
         kd = (cfg.kd * self.kd_s * self.strength)[:, None].repeat(12, 1)
         self.foot_touch[:] = False
-        self.other_touch[:] = False
+        self.geom_touch[:] = False
         self.base_touch[:] = False
         lift_touch = np.zeros(self.N, dtype=bool)
         self.lift_err = np.full((self.N, 3), np.nan)
@@ -445,8 +447,8 @@ class TripodEnv:
             self.batch.step(nstep=1)
             fc = sd[:, tm.foot_contact] > 0
             self.foot_touch |= fc
-            self.other_touch |= np.any(np.abs(sd[:, tm.other_contact + 1]) + np.abs(
-                sd[:, tm.other_contact + 3]) > 1.0, axis=1)
+            self.geom_touch |= np.abs(sd[:, tm.other_contact + 1]) + np.abs(
+                sd[:, tm.other_contact + 3]) > 1.0
             self.base_touch |= np.any(sd[:, tm.base_contact] > 0, axis=1)
             ll = self.lift_leg
             held = (ll >= 0) & ((self.phase == 2) | (self.phase == 3))
@@ -459,6 +461,7 @@ class TripodEnv:
             self.lift_q_des[ai] = qd_last
         self.lift_t += self.dt
         self.lift_touch = lift_touch
+        self.other_touch[:] = self.geom_touch.any(1)
         self.episode_length_buf += 1
         # pushes
         if cfg.dr.enabled:

@@ -7,13 +7,16 @@ after. Success: no fall, no contact of anything but the feet, the lifted foot ne
 during hold and excitation. During the excitation (steady window for CN): base tilt RMS,
 base angular-rate RMS (norm), lifted-leg joint tracking RMSE (all three joints, last physics
 step of each policy step), and the condition number of the executed foot angular velocity
-(body gyro rotated into the foot frame plus the leg's relative rate, at 50 Hz).
+(body gyro rotated into the foot frame plus the leg's relative rate, at 50 Hz). Each failed
+episode is counted by its first cause (:func:`failure_cause`) and phase, and the stance calves'
+lowest approach to the floor during the excitation is reported (``calf_clearance_mm``).
 """
 
 from __future__ import annotations
 
 import json
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -21,11 +24,12 @@ import numpy as np
 from calib.atomic import write_text_atomic
 from calib.excitation import covariance_kappa, foot_omega
 from calib.joints import MODEL_LEGS
-from deploy.lift_schedule import LiftSchedule
+from deploy.lift_schedule import PHASES, LiftSchedule
 from policy_train.config import TrainConfig
 from policy_train.env import PlanPool, TripodEnv
 
-__all__ = ["TARGETS", "evaluate_policy", "foot_angular_velocity"]
+__all__ = ["TARGETS", "evaluate_policy", "failure_cause", "foot_angular_velocity", "format_failures",
+           "format_table"]
 
 TARGETS = {"success": 0.99, "tilt_rms_deg": 3.0, "ang_rate_rms": 0.1, "track_rmse": 0.05,
            "cn": 1.2}
@@ -100,6 +104,12 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     tilt2, rate2, err2, nexc = np.zeros(N), np.zeros(N), np.zeros(N), np.zeros(N)
     omega_f = [[] for _ in range(N)]
     ramp = sched.plan(legs[0]).config.ramp
+    # the first failure of each episode: its cause and the schedule phase it happened in
+    cause, cause_phase = [""] * N, [""] * N
+    geoms = env.tm.collision_geoms
+    stance = np.ones((N, 4), dtype=bool)
+    stance[np.arange(N), leg_of] = False
+    calf_min = np.full(N, np.inf)  # lowest a stance calf came to the floor in the excitation, m
     obs = env.observations()["policy"]
     name_in = sess.get_inputs()[0].name
     for _ in range(n_steps):
@@ -107,11 +117,19 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
         ob, _, _, extras = env.step(act)
         obs = ob["policy"]
         term = extras["terminated"]
+        was_ok = alive & ~touched_other & ~touched_lift
         alive &= ~term
         touched_other |= env.other_touch & alive
         touched_lift |= env.lift_touch & alive
+        for i in np.flatnonzero(was_ok & (term | env.other_touch | env.lift_touch)):
+            cause[i] = failure_cause(bool(term[i]), [geoms[g] for g in np.flatnonzero(
+                env.geom_touch[i])], MODEL_LEGS[leg_of[i]], bool(env.lift_touch[i]))
+            cause_phase[i] = PHASES[min(env.phase[i], len(PHASES) - 1)]
         exc = alive & (env.phase == 3)
         if exc.any():
+            foot_z = env.sensordata[:, env.tm.foot_pos + 2]
+            low = env.tm.calf_low_z(env.gravity_b[exc], env.q[exc], foot_z[exc])
+            calf_min[exc] = np.minimum(calf_min[exc], np.where(stance[exc], low, np.inf).min(1))
             tilt = np.arccos(np.clip(-env.gravity_b[:, 2], -1, 1))
             tilt2[exc] += tilt[exc] ** 2
             rate2[exc] += np.sum(env.ang_vel_b[exc] ** 2, 1)
@@ -149,6 +167,11 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
             "track_rmse": _rms(err2[ok], nexc[ok]),
             "cn_median": float(np.median(cn)) if cn else float("nan"),
             "cn_p90": float(np.percentile(cn, 90)) if cn else float("nan"),
+            "first_failure": _counts(cause[i] for i in np.flatnonzero(sel & ~success)),
+            "first_failure_phase": _counts(cause_phase[i] for i in np.flatnonzero(sel & ~success)),
+            # median and 10th percentile over the episodes of their lowest stance calf, mm
+            "calf_clearance_mm": [float(1e3 * np.percentile(calf_min[ok], p)) if ok.any()
+                                  else float("nan") for p in (50, 10)],
         }
     result = {"policy": onnx_path.name, "episodes_per_leg": episodes, "seed": seed,
               "domain_randomisation": not nominal, "dr_off": list(dr_off),
@@ -157,6 +180,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
               "wall_s": time.time() - t0, "legs": rows, "targets": TARGETS}
     table = format_table(result)
     log(table)
+    log("\n" + format_failures(result))
     write = write and not dr_off  # a diagnosis, not the policy's evaluation
     if write and nominal:
         meta["evaluation_nominal"] = result
@@ -166,6 +190,34 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
         meta["evaluation"] = result
         write_text_atomic(onnx_path.with_suffix(".json"), json.dumps(meta, indent=1) + "\n")
     return result
+
+
+def failure_cause(fell: bool, geoms: list[str], lifted: str, lift_touch: bool) -> str:
+    """What ended a successful tripod, in words, from one policy step's events.
+
+    ``geoms``: the non-foot collision geoms on the floor (``<leg>_<part>_colN`` or
+    ``base_colN``); ``lifted``: the lifted leg's name. A fall (tilt, height, body on the floor)
+    comes first, then a stance calf, a stance hip or thigh, the lifted leg, the body, and
+    last the lifted foot set down."""
+    if fell:
+        return "fall"
+    kinds = set()
+    for g in geoms:
+        leg, _, rest = g.partition("_")
+        if leg not in MODEL_LEGS:
+            kinds.add("body")
+        elif leg == lifted:
+            kinds.add("lifted leg")
+        else:
+            kinds.add("stance calf" if rest.startswith("calf") else "stance hip/thigh")
+    for k in ("stance calf", "stance hip/thigh", "lifted leg", "body"):
+        if k in kinds:
+            return k
+    return "lifted foot down" if lift_touch else ""
+
+
+def _counts(items) -> dict[str, int]:
+    return dict(Counter(items).most_common())
 
 
 def _averaged(meta: dict) -> str:
@@ -226,6 +278,36 @@ def format_table(r: dict) -> str:
     return "\n".join(lines)
 
 
+def format_failures(r: dict) -> str:
+    """The failed episodes by first cause and phase, and the stance calves' clearance; empty
+    for evaluations stored before they were recorded."""
+    if not all("first_failure" in x for x in r["legs"].values()):
+        return ""
+
+    def words(d: dict) -> str:
+        return ", ".join(f"{k} {n}" for k, n in d.items()) or "-"
+
+    lines = [("| leg | failed | first failure | in phase | stance-calf clearance (mm), median "
+              "(p10) of the episodes' lowest |"), "| --- | --- | --- | --- | --- |"]
+    for leg, x in r["legs"].items():
+        med, p10 = x["calf_clearance_mm"]
+        lines.append(f"| {leg} | {sum(x['first_failure'].values())} | {words(x['first_failure'])} "
+                     f"| {words(x['first_failure_phase'])} | {med:.1f} ({p10:.1f}) |")
+    return "\n".join(lines)
+
+
+def _failures_section(r: dict) -> str:
+    t = format_failures(r)
+    return "" if not t else f"""
+What ended the failed episodes (the first event of each: a fall, then the part that touched the
+floor, then the lifted foot set down), in which phase of the schedule, and how close the
+stance calves came to the floor during the excitation (the lowest point of their collision
+hulls; a touch counts from 1 N):
+
+{t}
+"""
+
+
 def _report(r: dict, meta: dict, table: str) -> str:
     return f"""# Tripod policy evaluation
 
@@ -247,7 +329,7 @@ Targets: success >= 99 %, tilt RMS <= 3 deg, angular rate RMS <= 0.1 rad/s, trac
 <= 0.05 rad, CN <= 1.2 (p90 compared).
 
 {table}
-
+{_failures_section(r)}
 Wall time {r['wall_s']:.0f} s.
 {_nominal_section(meta)}
 
@@ -271,10 +353,3 @@ def _curve(meta: dict) -> str:
                     f"{'-' if er is None else f'{er:+.1f}'} | {'-' if el is None else f'{el:.1f}'} |")
     return "\n".join(rows)
 
-
-def rewrite_report(onnx_path, results_path="docs/results/policy.md") -> None:
-    """Re-render the results page from the evaluation stored in the policy JSON."""
-    onnx_path = Path(onnx_path)
-    meta = json.loads(onnx_path.with_suffix(".json").read_text())
-    r = meta["evaluation"]
-    write_text_atomic(results_path, _report(r, meta, format_table(r)))

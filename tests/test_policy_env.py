@@ -106,6 +106,8 @@ def test_contact_other_than_feet_ends_the_episode():
     e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=6, threads=1,
                             p_reference_start=0.0))
     e.step(np.zeros((2, 12)))
+    assert e.geom_touch.shape == (2, len(e.tm.collision_geoms))
+    assert np.array_equal(e.other_touch, e.geom_touch.any(1))
     e.other_touch[:] = [True, False]
     _, _, term = R.compute_rewards(e)
     assert term[0] and not term[1]
@@ -222,3 +224,34 @@ def test_com_and_v2_terms_in_env(env):
     assert np.all(np.linalg.norm(env.com_xy - env.base_pos[:, :2], axis=1) < 0.1)
     _, terms, _ = R.compute_rewards(env)
     assert {"upright", "ang_vel_xy", "lift_clearance", "support"} <= set(terms)
+
+
+
+def test_calf_low_point_is_the_lowest_vertex_of_the_calf_geoms(env):
+    import mujoco
+
+    from calib.joints import MODEL_LEGS
+    from policy_train.env import projected_gravity
+
+    m = env.tm.model
+    d = mujoco.MjData(m)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        quat = rng.normal(size=4) + [3.0, 0, 0, 0]
+        d.qpos[:3] = [0.1, -0.2, 0.3]
+        d.qpos[3:7] = quat / np.linalg.norm(quat)
+        d.qpos[7:19] = np.tile([0.0, 0.8, -1.6], 4) + rng.uniform(-0.8, 0.8, 12)
+        mujoco.mj_kinematics(m, d)
+        foot_z = np.array([[d.site_xpos[m.site(f"{leg}_foot").id][2] for leg in MODEL_LEGS]])
+        got = env.tm.calf_low_z(projected_gravity(d.qpos[None, 3:7].copy()),
+                                d.qpos[None, 7:19].copy(), foot_z)
+        want = []
+        for leg in MODEL_LEGS:  # brute force: every mesh vertex of the calf in the world frame
+            z = []
+            for g in np.flatnonzero(m.geom_bodyid == m.body(f"{leg}_calf").id):
+                if m.geom_type[g] != mujoco.mjtGeom.mjGEOM_MESH:
+                    continue
+                a, n = m.mesh_vertadr[m.geom_dataid[g]], m.mesh_vertnum[m.geom_dataid[g]]
+                z.append(d.geom_xpos[g][2] + m.mesh_vert[a:a + n] @ d.geom_xmat[g].reshape(3, 3)[2])
+            want.append(np.concatenate(z).min())
+        np.testing.assert_allclose(got[0], want, atol=1e-9)

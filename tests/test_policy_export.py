@@ -119,6 +119,10 @@ def test_eval_runs_on_export(exported, tmp_path):
     r = evaluate_policy(d / "pol.onnx", episodes=1, legs=("FL",), results_path=out,
                         log=lambda s: None)
     assert set(r["legs"]) == {"FL"} and 0.0 <= r["legs"]["FL"]["success"] <= 1.0
+    x = r["legs"]["FL"]
+    failed = round((1 - x["success"]) * x["episodes"])
+    assert sum(x["first_failure"].values()) == sum(x["first_failure_phase"].values()) == failed
+    assert len(x["calf_clearance_mm"]) == 2
     assert out.exists() and "| FL |" in out.read_text()
     assert json.loads((d / "pol.json").read_text())["evaluation"]["legs"]["FL"]["episodes"] == 1
 
@@ -135,7 +139,8 @@ def test_nominal_eval_goes_to_the_json_then_the_report(exported, tmp_path):
     assert meta["evaluation_nominal"]["legs"]["RR"]["episodes"] == 1
     evaluate_policy(d / "pol.onnx", episodes=1, legs=("RR",), results_path=out, log=lambda s: None)
     text = out.read_text()
-    assert "Without domain randomisation" in text and text.count("| RR |") == 2
+    # the randomised evaluation, its failures, the nominal one
+    assert "Without domain randomisation" in text and text.count("| RR |") == 3
 
 
 def test_dr_off_evaluates_without_the_group_and_writes_nothing(exported, tmp_path):
@@ -166,6 +171,22 @@ def test_table_shows_the_held_figures_and_reads_older_evaluations():
     assert "| 2.50 ok (1.90) | 0.450 MISS (0.081) |" in new
     old = format_table({"legs": {"FL": row}})  # stored before the held figures existed
     assert "| 2.50 ok | 0.450 MISS |" in old
+
+
+def test_failures_name_the_first_cause_and_older_evaluations_have_none():
+    from policy_train.evaluate import failure_cause, format_failures
+
+    assert failure_cause(True, ["RL_calf_col1"], "FL", True) == "fall"
+    assert failure_cause(False, ["FL_calf_col0", "RL_calf_col1"], "FL", False) == "stance calf"
+    assert failure_cause(False, ["FL_calf_col0", "base_col0"], "FL", False) == "lifted leg"
+    assert failure_cause(False, ["RR_hip_col0"], "FL", True) == "stance hip/thigh"
+    assert failure_cause(False, ["base_col0"], "RL", False) == "body"
+    assert failure_cause(False, [], "RL", True) == "lifted foot down"
+    row = {"first_failure": {"stance calf": 9, "fall": 1}, "first_failure_phase": {"excite": 10},
+           "calf_clearance_mm": [2.7, -1.5]}
+    t = format_failures({"legs": {"FL": row}})
+    assert "| FL | 10 | stance calf 9, fall 1 | excite 10 | 2.7 (-1.5) |" in t
+    assert format_failures({"legs": {"FL": {"success": 0.8}}}) == ""
 
 
 def test_cli_missing_inputs_exit_2_with_one_line(tmp_path):
