@@ -143,6 +143,19 @@ class ExcitationConfig:
 # closed-form foot angular velocity and kappa
 
 
+def base_to_foot(v_b: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Base-frame vectors expressed in the foot (calf) frame, (N, 3): R^T v with
+    R = Rx(hip) Ry(thigh + calf), the Go2 leg's frames being aligned at q = 0.
+
+    ``v_b``: (N, 3) in the base frame; ``q``: (N, 3) joint angles rad (hip, thigh, calf).
+    Elementwise (no matrix product), so it is cheap inside a vectorised rollout."""
+    h, s = q[:, 0], q[:, 1] + q[:, 2]
+    x, y, z = v_b[:, 0], v_b[:, 1], v_b[:, 2]
+    y1 = np.cos(h) * y + np.sin(h) * z
+    z1 = -np.sin(h) * y + np.cos(h) * z
+    return np.stack([np.cos(s) * x - np.sin(s) * z1, y1, np.sin(s) * x + np.cos(s) * z1], 1)
+
+
 def foot_omega(q: np.ndarray, dq: np.ndarray) -> np.ndarray:
     """Foot angular velocity relative to the base, in the foot (calf) frame, rad/s, (N, 3).
 

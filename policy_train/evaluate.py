@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.atomic import write_text_atomic
-from calib.excitation import covariance_kappa, foot_omega
+from calib.excitation import base_to_foot, covariance_kappa, foot_omega
 from calib.joints import MODEL_LEGS
 from deploy.lift_schedule import PHASES, LiftSchedule
 from policy_train.config import TrainConfig
@@ -37,15 +37,8 @@ TARGETS = {"success": 0.99, "tilt_rms_deg": 3.0, "ang_rate_rms": 0.1, "track_rms
 
 def foot_angular_velocity(q_leg: np.ndarray, dq_leg: np.ndarray, omega_base: np.ndarray):
     """Foot (calf) frame angular velocity, rad/s, (N, 3): base rate rotated into the foot frame
-    (R = Rx(hip) Ry(thigh + calf)) plus the leg's relative rate (calib.excitation.foot_omega)."""
-    h, s = q_leg[:, 0], q_leg[:, 1] + q_leg[:, 2]
-    wx, wy, wz = omega_base.T
-    # R^T w with R = Rx(h) Ry(s)
-    y1 = np.cos(h) * wy + np.sin(h) * wz
-    z1 = -np.sin(h) * wy + np.cos(h) * wz
-    x2 = np.cos(s) * wx - np.sin(s) * z1
-    z2 = np.sin(s) * wx + np.cos(s) * z1
-    return np.stack([x2, y1, z2], 1) + foot_omega(q_leg, dq_leg)
+    (calib.excitation.base_to_foot) plus the leg's relative rate (calib.excitation.foot_omega)."""
+    return base_to_foot(omega_base, q_leg) + foot_omega(q_leg, dq_leg)
 
 
 def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, write: bool = True,

@@ -16,6 +16,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from calib.excitation import base_to_foot
 from calib.joints import EFFORT_LIMIT, MODEL_LEGS
 from sim.model import build_go2_spec
 
@@ -140,23 +141,18 @@ class TrainModel:
 
         A stance calf is what touches the floor first when its leg inclines: the hull near the
         foot reaches within 6-10 mm of the floor in v7's tripod. gravity_b (N, 3) projected
-        gravity (unit, base frame); q (N, 12) joint angles rad (Go2: hip about x, thigh and calf
-        about y, frames aligned at q = 0); foot_z (N, 4) foot-site heights m. World up is
-        carried into each calf frame; the lowest point is the foot's height plus the most
-        negative projection of :attr:`calf_hull` on it."""
+        gravity (unit, base frame); q (N, 12) joint angles rad; foot_z (N, 4) foot-site
+        heights m. World up is carried into each calf frame
+        (:func:`calib.excitation.base_to_foot`); the lowest point is the foot's height plus the
+        most negative projection of :attr:`calf_hull` on it."""
         up = -gravity_b
         out = np.empty(foot_z.shape)
         for leg in range(4):
-            q0, q12 = q[:, 3 * leg], q[:, 3 * leg + 1] + q[:, 3 * leg + 2]
-            # R_x(q0)^T, then R_y(q1 + q2)^T, applied to the base-frame up vector
-            uy = np.cos(q0) * up[:, 1] + np.sin(q0) * up[:, 2]
-            uz = -np.sin(q0) * up[:, 1] + np.cos(q0) * up[:, 2]
-            ux_c = np.cos(q12) * up[:, 0] - np.sin(q12) * uz
-            uz_c = np.sin(q12) * up[:, 0] + np.cos(q12) * uz
+            u = base_to_foot(up, q[:, 3 * leg:3 * leg + 3])
             # elementwise, not a matmul: used inside a rollout, idle BLAS threads spin and
             # starve MuJoCo's thread pool (a 16-core training run fell from 30 k to 10 k steps/s)
             h = self.calf_hull[leg].T
-            proj = ux_c[:, None] * h[0] + uy[:, None] * h[1] + uz_c[:, None] * h[2]
+            proj = u[:, :1] * h[0] + u[:, 1:2] * h[1] + u[:, 2:] * h[2]
             out[:, leg] = foot_z[:, leg] + np.min(proj, -1)
         return out
 

@@ -226,7 +226,6 @@ def test_com_and_v2_terms_in_env(env):
     assert {"upright", "ang_vel_xy", "lift_clearance", "support"} <= set(terms)
 
 
-
 def test_calf_low_point_is_the_lowest_vertex_of_the_calf_geoms(env):
     import mujoco
 
