@@ -1,6 +1,7 @@
 """``a2i-train``: train, export and evaluate the tripod calibration-action policy.
 
-  a2i-train tripod [--iterations N] [--seed S] [--num-envs N] [--resume CKPT [--new-rewards]]
+  a2i-train tripod [--iterations N] [--seed S] [--num-envs N] [--resume CKPT [CKPT ...]
+                   [--new-rewards]] [--smoothness-coef C]
                    [--lift-leg-weights FL,FR,RL,RR] [--[no-]mirror-augmentation] [--run-dir D]
                    [--export policies/NAME]
   a2i-train export CHECKPOINT [CHECKPOINT ...] --out policies/NAME [--legs RL,RR]
@@ -32,10 +33,18 @@ def _tripod(a) -> int:
 
     if a.iterations < 1:
         raise SystemExit("--iterations must be >= 1")
+    if a.smoothness_coef is not None and a.smoothness_coef < 0:
+        raise SystemExit("--smoothness-coef must be >= 0")
     cfg = TrainConfig()
     if a.resume:
-        d = torch.load(a.resume, weights_only=False, map_location="cpu")
-        cfg = TrainConfig.from_dict(d["train_config"])
+        ckpts = [torch.load(c, weights_only=False, map_location="cpu") for c in a.resume]
+        if len(ckpts) == 1:
+            start = ckpts[0]
+        else:  # the newest one, its actor the mean of all (as export averages)
+            from policy_train.export import average_checkpoints
+
+            start = average_checkpoints(ckpts)
+        cfg = TrainConfig.from_dict(start["train_config"])
         if a.new_rewards:  # continue the weights under this code's rewards and episodes
             fresh = EnvConfig()
             cfg.env.rewards = RewardConfig()
@@ -49,6 +58,7 @@ def _tripod(a) -> int:
                  "model_file": (cfg.env, "model_file"), "plan_pool": (cfg.env, "plan_pool_file"),
                  "steps_per_env": (cfg.ppo, "num_steps_per_env"),
                  "entropy_coef": (cfg.ppo, "entropy_coef"),
+                 "smoothness_coef": (cfg.ppo, "smoothness_coef"),
                  "lift_leg_weights": (cfg.env, "lift_leg_weights")}
     for arg, (section, field) in overrides.items():
         if getattr(a, arg) is not None:
@@ -59,8 +69,9 @@ def _tripod(a) -> int:
     t0 = time.time()
     tr = Trainer(cfg, run_dir, seed=a.seed, log=lambda s: print(s, flush=True))
     if a.resume:
-        tr.load(a.resume)
-        print(f"resumed from {a.resume} at iteration {tr.iteration}", flush=True)
+        tr.load(start)
+        print(f"resumed from {' '.join(a.resume)} at iteration {tr.iteration}"
+              + (" (actor weights averaged)" if len(a.resume) > 1 else ""), flush=True)
     tr.total_iterations = a.total_iterations or (tr.iteration + a.iterations)
     print(f"tripod: {cfg.env.num_envs} envs, run dir {run_dir}, setup {time.time() - t0:.1f} s",
           flush=True)
@@ -163,7 +174,12 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this")
     t.add_argument("--model-file", default=None, help="compiled training model (.mjb)")
     t.add_argument("--plan-pool", default=None, help="precomputed excitation plan pool (.npz)")
-    t.add_argument("--resume", default=None, help="checkpoint to continue from")
+    t.add_argument("--resume", nargs="+", default=None, metavar="CKPT",
+                   help="checkpoint to continue from; several of one run: from the newest with "
+                        "the mean of their actor weights (as export averages)")
+    t.add_argument("--smoothness-coef", type=float, default=None,
+                   help="weight of the actor's observation-noise smoothness loss (0: off, the "
+                        "default; policy_train/smoothness.py)")
     t.add_argument("--new-rewards", action="store_true",
                    help="with --resume: use the current reward weights, episode settings (contact "
                         "terminations, reference starts, ...) and domain randomisation, not the "

@@ -188,6 +188,8 @@ class PPOConfig:
     stage1_fraction: float = 0.15     # first fraction of iterations: tripod only (paper phase 1)
     # every mini-batch also trains on its left-right mirror image (policy_train.symmetry)
     mirror_augmentation: bool = True
+    # weight of the actor's observation-noise smoothness loss (policy_train.smoothness); 0: off
+    smoothness_coef: float = 0.0
     save_interval: int = 25
 
 
@@ -220,4 +222,5 @@ class TrainConfig:
         e = {k: tuple(v) if isinstance(v, list) else v for k, v in e.items()}
         p = {k: tuple(v) if isinstance(v, list) else v for k, v in d["ppo"].items()}
         p.setdefault("mirror_augmentation", False)  # not used before v5
+        p.setdefault("smoothness_coef", 0.0)  # not used before v8
         return cls(EnvConfig(**e, rewards=rw, dr=DRConfig(**dr)), PPOConfig(**p))

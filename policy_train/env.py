@@ -31,15 +31,20 @@ from calib.joints import (
     sdk_to_model,
 )
 from deploy.lift_schedule import PHASES, blend_targets
-from deploy.observation import build_observation, default_terms, projected_gravity
+from deploy.observation import TERM_SIZES, build_observation, default_terms, projected_gravity
 from policy_train.config import EnvConfig
 from policy_train.model import TrainModel
 from policy_train.rewards import compute_rewards
 from policy_train.tripod_pose import tripod_pose
 
-__all__ = ["LIFT_VALUES", "PRIV_TERMS", "PlanPool", "TripodEnv"]
+__all__ = ["LIFT_VALUES", "OBS_NOISE", "PRIV_TERMS", "PlanPool", "TripodEnv"]
 
 LIFT_VALUES = {"none": 0, "FL": 1, "FR": 2, "RL": 3, "RR": 4}
+# observation term -> the DRConfig field of its uniform noise half-width (the term's signal
+# units), in the order the noise is drawn
+OBS_NOISE: tuple[tuple[str, str], ...] = (
+    ("base_ang_vel", "noise_ang_vel"), ("projected_gravity", "noise_gravity"),
+    ("joint_pos", "noise_joint_pos"), ("joint_vel", "noise_joint_vel"))
 """Value of the ``lift_command`` observation per leg (paper: c_lift in {0, ..., 4})."""
 
 PRIV_TERMS: tuple[tuple[str, int], ...] = (
@@ -509,24 +514,33 @@ class TripodEnv:
 
     def signals(self, noise: bool = True) -> dict[str, np.ndarray]:
         """The robot signals deploy would see (SDK order), with observation noise if enabled."""
-        dr, rng, N = self.cfg.dr, self.rng, self.N
-        ang, grav = self.ang_vel_b, self.gravity_b
-        q, dq = self.q, self.dq
+        dr = self.cfg.dr
+        s = {"base_ang_vel": self.ang_vel_b, "projected_gravity": self.gravity_b,
+             "joint_pos": self.q, "joint_vel": self.dq}  # joints in model order here
         if noise and dr.enabled:
-            ang = ang + rng.uniform(-1, 1, (N, 3)) * dr.noise_ang_vel
-            grav = grav + rng.uniform(-1, 1, (N, 3)) * dr.noise_gravity
-            q = q + rng.uniform(-1, 1, (N, 12)) * dr.noise_joint_pos
-            dq = dq + rng.uniform(-1, 1, (N, 12)) * dr.noise_joint_vel
+            s = {name: s[name] + self.rng.uniform(-1, 1, s[name].shape) * getattr(dr, field)
+                 for name, field in OBS_NOISE}
         return {
             "base_lin_vel": self.lin_vel_b,
-            "base_ang_vel": ang,
-            "projected_gravity": grav,
-            "joint_pos": model_to_sdk(q),
-            "joint_vel": model_to_sdk(dq),
+            "base_ang_vel": s["base_ang_vel"],
+            "projected_gravity": s["projected_gravity"],
+            "joint_pos": model_to_sdk(s["joint_pos"]),
+            "joint_vel": model_to_sdk(s["joint_vel"]),
             "previous_actions": self.actions,
             "commands": self.commands,
             "lift_command": self.lift_command_value(),
         }
+
+    def observation_noise_amplitude(self) -> np.ndarray:
+        """(49,) half-width of the policy observation's uniform noise, observation units (the
+        term's scale times its signal's noise; 0 for noiseless or zero-filled terms)."""
+        dr = self.cfg.dr
+        noise = {name: getattr(dr, field) if dr.enabled else 0.0 for name, field in OBS_NOISE}
+        return np.concatenate([
+            np.zeros(TERM_SIZES[t["name"]]) if t.get("source", "measured") == "zero" else
+            np.abs(np.broadcast_to(np.asarray(t.get("scale", 1.0), dtype=float),
+                                   TERM_SIZES[t["name"]])) * noise.get(t["name"], 0.0)
+            for t in self.obs_terms])
 
     def observations(self) -> dict[str, np.ndarray]:
         """{"policy": (N, 49) float32, "critic": (N, 49 + PRIV_SIZE) float32}."""

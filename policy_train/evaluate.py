@@ -28,7 +28,7 @@ from deploy.lift_schedule import PHASES, LiftSchedule
 from policy_train.config import TrainConfig
 from policy_train.env import PlanPool, TripodEnv
 
-__all__ = ["TARGETS", "evaluate_policy", "failure_cause", "foot_angular_velocity", "format_failures",
+__all__ = ["TARGETS", "evaluate_policy", "evaluation_env", "failure_cause", "foot_angular_velocity", "format_failures",
            "format_table"]
 
 TARGETS = {"success": 0.99, "tilt_rms_deg": 3.0, "ang_rate_rms": 0.1, "track_rmse": 0.05,
@@ -39,6 +39,39 @@ def foot_angular_velocity(q_leg: np.ndarray, dq_leg: np.ndarray, omega_base: np.
     """Foot (calf) frame angular velocity, rad/s, (N, 3): base rate rotated into the foot frame
     (calib.excitation.base_to_foot) plus the leg's relative rate (calib.excitation.foot_omega)."""
     return base_to_foot(omega_base, q_leg) + foot_omega(q_leg, dq_leg)
+
+
+def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = False,
+                   dr_off: tuple[str, ...] = ()) -> tuple[TripodEnv, np.ndarray]:
+    """The evaluation's environment for a policy's JSON: ``episodes`` per leg of ``legs``, each
+    with the lift command at t = 0 and the JSON's schedule and plans, running to its end (no
+    terminations, no reference starts). Returns the env and each episode's model leg index."""
+    cfg = TrainConfig.from_dict(meta["train_config"]).env
+    cfg.model_file = None
+    cfg.plan_pool_file = None
+    cfg.num_envs = episodes * len(legs)
+    cfg.seed = seed
+    cfg.dr = cfg.dr.without(*dr_off)
+    cfg.dr.enabled = not nominal
+    # every episode starts on four legs and runs to its end: failures are counted, not ended
+    cfg.p_reference_start = 0.0
+    cfg.terminate_on_contact = False
+    cfg.command_resample_s = 1e6
+    cfg.episode_s = 1e6  # episodes end with the motion, not by time-out
+    cfg.action_scale = float(meta["action"]["scale"])
+    cfg.action_clip = float(meta["action"]["clip"])
+    sched = LiftSchedule.from_metadata(meta["lift_schedule"])
+    cfg.shift_s, cfg.lift_s, cfg.hold_s, cfg.lower_s = sched.shift, sched.lift, sched.hold, sched.lower
+    cfg.lift_kp, cfg.lift_kd = sched.kp, sched.kd
+    pool = PlanPool.from_plans([sched.plan(leg) for leg in MODEL_LEGS], cfg.physics_dt)
+    env = TripodEnv(cfg, plan_pool=pool)
+    env.obs_terms = meta["observation"]["terms"]  # the JSON's terms, as on board
+    leg_of = np.repeat([MODEL_LEGS.index(leg) for leg in legs], episodes)
+    env.p_excite = 1.0
+    env._sample_commands(np.arange(env.N), legs=leg_of)
+    env.lift_plan[:] = leg_of  # pool index == model leg index
+    env.lift_dur[:, 3] = pool.duration[leg_of]
+    return env, leg_of
 
 
 def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, write: bool = True,
@@ -62,33 +95,10 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     if dr_off and nominal:
         raise ValueError("dr_off needs the randomisation on (not nominal)")
     sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
-    cfg = TrainConfig.from_dict(meta["train_config"]).env
-    cfg.model_file = None
-    cfg.plan_pool_file = None
-    cfg.num_envs = episodes * len(legs)
-    cfg.seed = seed
-    cfg.dr = cfg.dr.without(*dr_off)
-    cfg.dr.enabled = not nominal
-    # every episode starts on four legs and runs to its end: failures are counted, not ended
-    cfg.p_reference_start = 0.0
-    cfg.terminate_on_contact = False
-    cfg.command_resample_s = 1e6
-    cfg.episode_s = 1e6  # episodes end with the motion (below), not by time-out
-    cfg.action_scale = float(meta["action"]["scale"])
-    cfg.action_clip = float(meta["action"]["clip"])
-    sched = LiftSchedule.from_metadata(meta["lift_schedule"])
-    cfg.shift_s, cfg.lift_s, cfg.hold_s, cfg.lower_s = sched.shift, sched.lift, sched.hold, sched.lower
-    cfg.lift_kp, cfg.lift_kd = sched.kp, sched.kd
-    pool = PlanPool.from_plans([sched.plan(leg) for leg in MODEL_LEGS], cfg.physics_dt)
     t0 = time.time()
-    env = TripodEnv(cfg, plan_pool=pool)
-    env.obs_terms = meta["observation"]["terms"]  # the JSON's terms, as on board
+    env, leg_of = evaluation_env(meta, legs, episodes, seed, nominal=nominal, dr_off=dr_off)
+    sched = LiftSchedule.from_metadata(meta["lift_schedule"])
     N = env.N
-    leg_of = np.repeat([MODEL_LEGS.index(leg) for leg in legs], episodes)
-    env.p_excite = 1.0
-    env._sample_commands(np.arange(N), legs=leg_of)
-    env.lift_plan[:] = leg_of  # pool index == model leg index
-    env.lift_dur[:, 3] = pool.duration[leg_of]
     total = float(sched.total(legs[0]))
     n_steps = int(np.ceil((total + 0.5) / env.dt))
     alive = np.ones(N, dtype=bool)
@@ -168,7 +178,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
         }
     result = {"policy": onnx_path.name, "episodes_per_leg": episodes, "seed": seed,
               "domain_randomisation": not nominal, "dr_off": list(dr_off),
-              "armature_kg_m2": [float(x) for x in cfg.dr.armature],
+              "armature_kg_m2": [float(x) for x in env.cfg.dr.armature],
               "motion_s": total, "t_r": sched.t_r, "periods": sched.periods,
               "wall_s": time.time() - t0, "legs": rows, "targets": TARGETS}
     table = format_table(result)

@@ -60,8 +60,12 @@ def average_checkpoints(ckpts: list[dict]) -> dict:
         raise ValueError("no checkpoint to average")
     last = max(ckpts, key=lambda d: int(d["iter"]))
     shapes = {k: v.shape for k, v in last["actor_state_dict"].items()}
+
+    def ppo(d):  # how often a run saved says nothing of its network
+        return {k: v for k, v in d["train_config"]["ppo"].items() if k != "save_interval"}
+
     for d in ckpts:
-        if d["train_config"]["ppo"] != last["train_config"]["ppo"] or \
+        if ppo(d) != ppo(last) or \
                 {k: v.shape for k, v in d["actor_state_dict"].items()} != shapes:
             raise ValueError(f"checkpoint of iteration {d['iter']} has another PPO configuration "
                              "or network than the others: average checkpoints of one run only")

@@ -244,3 +244,41 @@ def test_bad_lift_leg_weights_exit_2_with_one_line(weights, capsys):
     assert exc.value.code == 2
     err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
     assert len(err) == 1 and "FL,FR,RL,RR" in err[0]
+
+
+def test_resume_from_averaged_checkpoints_with_the_smoothness_loss(exported):
+    """``--resume A B`` continues from the newest with the mean actor; ``--smoothness-coef``
+    trains with the observation-noise smoothness loss and logs it."""
+    import torch
+
+    from policy_train.export import average_checkpoints
+
+    d, _ = exported
+    ckpts = [str(d / "run" / f"model_{i}.pt") for i in (1, 2)]
+    cmd = [sys.executable, "-m", "policy_train.cli", "tripod", "--resume", *ckpts,
+           "--iterations", "1", "--num-envs", "8", "--plans-per-leg", "1", "--steps-per-env", "8",
+           "--smoothness-coef", "0.5", "--run-dir", str(d / "smooth")]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "(actor weights averaged)" in p.stdout
+    line = next(x for x in p.stdout.splitlines() if x.startswith("it     3"))
+    assert "smooth " in line
+    out = torch.load(d / "smooth" / "model_3.pt", weights_only=False, map_location="cpu")
+    assert out["train_config"]["ppo"]["smoothness_coef"] == 0.5
+    assert np.isfinite(out["history"][-1]["smoothness"])
+    assert out["history"][-2]["smoothness"] is None  # the checkpoint's run had it off
+    assert out["resumed_from_average"] == [1, 2]
+    # the Trainer starts from the mean's actor exactly (the CLI hands it the averaged dict)
+    from policy_train.config import TrainConfig
+    from policy_train.runner import Trainer
+
+    mean = average_checkpoints([torch.load(c, weights_only=False, map_location="cpu")
+                                for c in ckpts])
+    tr = Trainer(TrainConfig.from_dict(mean["train_config"]), d / "unused", log=lambda s: None)
+    tr.load(mean)
+    assert tr.iteration == 2
+    for k, v in tr.alg.actor.state_dict().items():
+        assert torch.equal(v, mean["actor_state_dict"][k]), k
+    bad = subprocess.run([*cmd[:-2], "--smoothness-coef", "-1", "--run-dir", str(d / "bad")],
+                         capture_output=True, text=True, timeout=240, check=False)
+    assert bad.returncode != 0 and "smoothness-coef" in bad.stderr
