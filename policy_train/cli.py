@@ -1,7 +1,7 @@
 """``a2i-train``: train, export and evaluate the tripod calibration-action policy.
 
   a2i-train tripod [--iterations N] [--seed S] [--num-envs N] [--resume CKPT [CKPT ...]
-                   [--new-rewards]] [--smoothness-coef C]
+                   [--new-rewards]]
                    [--lift-leg-weights FL,FR,RL,RR] [--[no-]mirror-augmentation] [--run-dir D]
                    [--export policies/NAME]
   a2i-train export CHECKPOINT [CHECKPOINT ...] --out policies/NAME [--legs RL,RR]
@@ -33,8 +33,6 @@ def _tripod(a) -> int:
 
     if a.iterations < 1:
         raise SystemExit("--iterations must be >= 1")
-    if a.smoothness_coef is not None and a.smoothness_coef < 0:
-        raise SystemExit("--smoothness-coef must be >= 0")
     cfg = TrainConfig()
     if a.resume:
         ckpts = [torch.load(c, weights_only=False, map_location="cpu") for c in a.resume]
@@ -58,7 +56,6 @@ def _tripod(a) -> int:
                  "model_file": (cfg.env, "model_file"), "plan_pool": (cfg.env, "plan_pool_file"),
                  "steps_per_env": (cfg.ppo, "num_steps_per_env"),
                  "entropy_coef": (cfg.ppo, "entropy_coef"),
-                 "smoothness_coef": (cfg.ppo, "smoothness_coef"),
                  "lift_leg_weights": (cfg.env, "lift_leg_weights")}
     for arg, (section, field) in overrides.items():
         if getattr(a, arg) is not None:
@@ -177,9 +174,6 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--resume", nargs="+", default=None, metavar="CKPT",
                    help="checkpoint to continue from; several of one run: from the newest with "
                         "the mean of their actor weights (as export averages)")
-    t.add_argument("--smoothness-coef", type=float, default=None,
-                   help="weight of the actor's observation-noise smoothness loss (0: off, the "
-                        "default; policy_train/smoothness.py)")
     t.add_argument("--new-rewards", action="store_true",
                    help="with --resume: use the current reward weights, episode settings (contact "
                         "terminations, reference starts, ...) and domain randomisation, not the "

@@ -188,8 +188,6 @@ class PPOConfig:
     stage1_fraction: float = 0.15     # first fraction of iterations: tripod only (paper phase 1)
     # every mini-batch also trains on its left-right mirror image (policy_train.symmetry)
     mirror_augmentation: bool = True
-    # weight of the actor's observation-noise smoothness loss (policy_train.smoothness); 0: off
-    smoothness_coef: float = 0.0
     save_interval: int = 25
 
 
@@ -222,5 +220,7 @@ class TrainConfig:
         e = {k: tuple(v) if isinstance(v, list) else v for k, v in e.items()}
         p = {k: tuple(v) if isinstance(v, list) else v for k, v in d["ppo"].items()}
         p.setdefault("mirror_augmentation", False)  # not used before v5
-        p.setdefault("smoothness_coef", 0.0)  # not used before v8
+        # the observation-noise smoothness loss of one experiment after v7 (commit 363d034,
+        # docs/policy-training.md) is gone: its runs load, and train on, without it
+        p.pop("smoothness_coef", None)
         return cls(EnvConfig(**e, rewards=rw, dr=DRConfig(**dr)), PPOConfig(**p))

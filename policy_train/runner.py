@@ -25,7 +25,6 @@ from tensordict import TensorDict
 
 from policy_train.config import TrainConfig
 from policy_train.env import TripodEnv
-from policy_train.smoothness import ObservationSmoothness
 from policy_train.symmetry import mirror_augmentation
 
 __all__ = ["TorchVecEnv", "Trainer", "rsl_train_cfg"]
@@ -110,10 +109,6 @@ class Trainer:
         self.train_cfg = rsl_train_cfg(cfg)
         obs = self.venv.get_observations()
         self.alg = PPO.construct_algorithm(obs, self.venv, self.train_cfg, "cpu")
-        if cfg.ppo.smoothness_coef > 0:
-            self.alg.symmetry = ObservationSmoothness(
-                self.alg.symmetry, cfg.ppo.smoothness_coef,
-                self.env.observation_noise_amplitude(), seed=seed)
         self.iteration = 0
         self.seed = seed
         self.history: list[dict] = []
@@ -194,8 +189,6 @@ class Trainer:
                 "steps_per_s": steps / (t1 - t0), "collect_s": t1 - t0, "learn_s": t2 - t1,
                 "value_loss": float(losses.get("value", losses.get("value_function", 0.0))),
                 "std": float(self.alg.get_policy().output_std.detach().mean()),
-                "smoothness": (self.alg.symmetry.take_mean()
-                               if isinstance(self.alg.symmetry, ObservationSmoothness) else None),
                 "stage": 1 if it < stage1_end else 2,
             }
             self.history.append(rec)
@@ -205,9 +198,7 @@ class Trainer:
                 f"it {self.iteration:5d}  stage {rec['stage']}  step_rew {rec['mean_step_reward']:+.4f}"
                 f"  ep_rew {'   -   ' if er is None else f'{er:+8.2f}'}"
                 f"  ep_len {'  -  ' if el is None else f'{el:5.1f}'} s  falls {falls:4d}/"
-                f"{len(finished_r):<4d}  std {rec['std']:.3f}"
-                + ("" if rec["smoothness"] is None else f"  smooth {rec['smoothness']:.4f}")
-                + f"  {rec['steps_per_s']:7.0f} steps/s"
+                f"{len(finished_r):<4d}  std {rec['std']:.3f}  {rec['steps_per_s']:7.0f} steps/s"
                 f"  ({rec['collect_s']:.1f}+{rec['learn_s']:.1f} s)", )
             if self.iteration % ppo.save_interval == 0:
                 self.save(self.run_dir / f"model_{self.iteration}.pt")

@@ -206,6 +206,9 @@ def test_old_configs_load_without_v2_terms():
     rw = TrainConfig.from_dict(d).env.rewards
     assert rw.upright == rw.ang_vel_xy == rw.lift_clearance == rw.support == 0.0
     assert TrainConfig.from_dict(TrainConfig().to_dict()).env.rewards == RewardConfig()
+    d = TrainConfig().to_dict()
+    d["ppo"]["smoothness_coef"] = 0.1  # the dropped experiment after v7 (runs/v15)
+    assert TrainConfig.from_dict(d).ppo == TrainConfig().ppo
 
 
 def test_old_configs_keep_their_plan_clearance_and_armature():
@@ -254,3 +257,22 @@ def test_calf_low_point_is_the_lowest_vertex_of_the_calf_geoms(env):
                 z.append(d.geom_xpos[g][2] + m.mesh_vert[a:a + n] @ d.geom_xmat[g].reshape(3, 3)[2])
             want.append(np.concatenate(z).min())
         np.testing.assert_allclose(got[0], want, atol=1e-9)
+
+
+def test_noise_amplitude_is_the_envs_observation_noise():
+    """``observation_noise_amplitude`` (the noise diagnosis's draws) against the noise the
+    observations actually carry: policy (noisy) minus the critic's clean copy."""
+    env = TripodEnv(EnvConfig(num_envs=64, plans_per_leg=1, seed=2, threads=1))
+    amp = env.observation_noise_amplitude()
+    assert amp.shape == (49,)
+    draws = [env.observations() for _ in range(20)]  # 1 280 noisy and clean observations
+    diff = np.concatenate([o["policy"] - o["critic"][:, :49] for o in draws])
+    reach = np.abs(diff).max(0)
+    assert np.all(reach <= amp + 1e-6)
+    noisy = amp > 0
+    assert noisy.sum() == 3 + 3 + 12 + 12  # gyro, gravity, joint positions and velocities
+    assert np.all(reach[noisy] > 0.95 * amp[noisy])  # uniform over the whole half-width
+    np.testing.assert_allclose(amp[3:6], 0.2 * 0.25)  # gyro +-0.2 rad/s at scale 0.25
+    np.testing.assert_allclose(amp[21:33], 1.5 * 0.05)  # joint velocities +-1.5 rad/s
+    env.cfg.dr.enabled = False
+    assert not env.observation_noise_amplitude().any()
