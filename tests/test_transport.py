@@ -290,7 +290,7 @@ def test_close_leaves_no_python_threads_and_no_os_thread_growth(endpoint):
 
     py_before = {t.ident for t in threading.enumerate()}
     counts = []
-    for _ in range(4):
+    for _ in range(6):
         with Transport(TransportConfig(listen=[endpoint])) as a, \
                 Transport(TransportConfig(connect=[endpoint])) as b:
             lv = b.latest(KEY_LOWSTATE)
@@ -303,8 +303,10 @@ def test_close_leaves_no_python_threads_and_no_os_thread_growth(endpoint):
         a.close()  # idempotent
         counts.append(os_threads())
     assert {t.ident for t in threading.enumerate()} == py_before
-    # Zenoh keeps one process-wide runtime; sessions must not add threads per cycle.
-    assert counts[-1] <= counts[1], counts
+    # Zenoh keeps one process-wide runtime; sessions must not add threads per cycle. A thread
+    # leaked per session would add 4 or more over the last 4 cycles; one more, once, is the
+    # runtime's blocking pool growing on demand (seen once in a full-suite run: 16, 16, 16, 17)
+    assert counts[-1] - counts[1] <= 1, counts
 
 
 @pytest.mark.parametrize("mode", ["client", "peer"])
