@@ -40,12 +40,13 @@ from policy_train.tripod_pose import tripod_pose
 __all__ = ["LIFT_VALUES", "OBS_NOISE", "PRIV_TERMS", "PlanPool", "TripodEnv"]
 
 LIFT_VALUES = {"none": 0, "FL": 1, "FR": 2, "RL": 3, "RR": 4}
-# observation term -> the DRConfig field of its uniform noise half-width (the term's signal
-# units), in the order the noise is drawn
+"""Value of the ``lift_command`` observation per leg (paper: c_lift in {0, ..., 4})."""
+
 OBS_NOISE: tuple[tuple[str, str], ...] = (
     ("base_ang_vel", "noise_ang_vel"), ("projected_gravity", "noise_gravity"),
     ("joint_pos", "noise_joint_pos"), ("joint_vel", "noise_joint_vel"))
-"""Value of the ``lift_command`` observation per leg (paper: c_lift in {0, ..., 4})."""
+"""Observation term -> the ``DRConfig`` field of its uniform noise half-width (the term's
+signal units), in the order the noise is drawn."""
 
 PRIV_TERMS: tuple[tuple[str, int], ...] = (
     ("lin_vel", 3), ("height", 1), ("foot_contact", 4), ("params", 4), ("phase", 6),

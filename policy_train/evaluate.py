@@ -28,8 +28,8 @@ from deploy.lift_schedule import PHASES, LiftSchedule
 from policy_train.config import TrainConfig
 from policy_train.env import PlanPool, TripodEnv
 
-__all__ = ["TARGETS", "evaluate_policy", "evaluation_env", "failure_cause", "foot_angular_velocity", "format_failures",
-           "format_table"]
+__all__ = ["TARGETS", "evaluate_policy", "evaluation_env", "failure_cause", "foot_angular_velocity",
+           "format_failures", "format_table"]
 
 TARGETS = {"success": 0.99, "tilt_rms_deg": 3.0, "ang_rate_rms": 0.1, "track_rmse": 0.05,
            "cn": 1.2}
