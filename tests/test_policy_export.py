@@ -76,6 +76,10 @@ def test_export_averages_the_checkpoints_of_one_run(exported, tmp_path):
     other["train_config"]["ppo"]["actor_hidden"] = [8]
     with pytest.raises(ValueError, match="one run only"):
         average_checkpoints([other, loaded[1]])
+    # a run resumed with another save interval is still one run (v7's 3800-4069 and 4100-4550)
+    resaved = dict(loaded[0], train_config={**loaded[0]["train_config"], "ppo": {
+        **loaded[0]["train_config"]["ppo"], "save_interval": 7}})
+    average_checkpoints([resaved, loaded[1]])
 
 
 def test_onnx_single_file_dynamic_batch(exported):
