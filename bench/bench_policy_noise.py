@@ -27,6 +27,8 @@ import numpy as np
 
 from calib.joints import check_leg
 from deploy.lift_schedule import PHASES, LiftSchedule
+from policy_train.config import DR_GROUPS, TrainConfig
+from policy_train.env import noise_amplitude
 from policy_train.evaluate import evaluation_env
 
 BANDS_HZ = ((0.0, 1.0), (1.0, 3.0), (3.0, 8.0), (8.0, 25.1))
@@ -57,7 +59,8 @@ def diagnose(onnx_path: Path, legs, episodes: int, setting: str, seed: int = 5) 
     env, _ = evaluation_env(meta, legs, episodes, seed, nominal=nominal, dr_off=dr_off)
     sched = LiftSchedule.from_metadata(meta["lift_schedule"])
     # the training's noise, also where this setting holds it nominal
-    amp = evaluation_env(meta, legs[:1], 1, seed)[0].observation_noise_amplitude()
+    amp = noise_amplitude(meta["observation"]["terms"],
+                          TrainConfig.from_dict(meta["train_config"]).env.dr)
     sl = term_slices(env.obs_terms)
     rng = np.random.default_rng(seed)
     excite = PHASES.index("excite")
@@ -101,6 +104,12 @@ def main(argv=None) -> int:
         legs = tuple(check_leg(x.strip()) for x in a.legs.split(","))
     except ValueError as e:
         p.error(str(e))
+    if a.episodes < 1:
+        p.error("--episodes must be >= 1")
+    for setting in a.settings.split(","):
+        if setting not in ("full", "nominal") and not set(setting.split("+")) <= set(DR_GROUPS):
+            p.error(f"setting {setting!r}: full, nominal, or groups of {', '.join(DR_GROUPS)} "
+                    "joined by +")
     for path in a.onnx:
         if not Path(path).is_file() or not Path(path).with_suffix(".json").is_file():
             p.error(f"{path}: no such policy (ONNX and JSON)")

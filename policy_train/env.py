@@ -37,7 +37,7 @@ from policy_train.model import TrainModel
 from policy_train.rewards import compute_rewards
 from policy_train.tripod_pose import tripod_pose
 
-__all__ = ["LIFT_VALUES", "OBS_NOISE", "PRIV_TERMS", "PlanPool", "TripodEnv"]
+__all__ = ["LIFT_VALUES", "OBS_NOISE", "PRIV_TERMS", "PlanPool", "TripodEnv", "noise_amplitude"]
 
 LIFT_VALUES = {"none": 0, "FL": 1, "FR": 2, "RL": 3, "RR": 4}
 """Value of the ``lift_command`` observation per leg (paper: c_lift in {0, ..., 4})."""
@@ -47,6 +47,20 @@ OBS_NOISE: tuple[tuple[str, str], ...] = (
     ("joint_pos", "noise_joint_pos"), ("joint_vel", "noise_joint_vel"))
 """Observation term -> the ``DRConfig`` field of its uniform noise half-width (the term's
 signal units), in the order the noise is drawn."""
+
+
+
+def noise_amplitude(terms: list[dict], dr) -> np.ndarray:
+    """(49,) half-width of the policy observation's uniform noise under ``dr`` (a
+    ``DRConfig``), observation units: each term's scale times its signal's noise; 0 for
+    noiseless or zero-filled terms, and everywhere when the randomisation is off."""
+    noise = {name: getattr(dr, field) if dr.enabled else 0.0 for name, field in OBS_NOISE}
+    return np.concatenate([
+        np.zeros(TERM_SIZES[t["name"]]) if t.get("source", "measured") == "zero" else
+        np.abs(np.broadcast_to(np.asarray(t.get("scale", 1.0), dtype=float),
+                               TERM_SIZES[t["name"]])) * noise.get(t["name"], 0.0)
+        for t in terms])
+
 
 PRIV_TERMS: tuple[tuple[str, int], ...] = (
     ("lin_vel", 3), ("height", 1), ("foot_contact", 4), ("params", 4), ("phase", 6),
@@ -533,15 +547,8 @@ class TripodEnv:
         }
 
     def observation_noise_amplitude(self) -> np.ndarray:
-        """(49,) half-width of the policy observation's uniform noise, observation units (the
-        term's scale times its signal's noise; 0 for noiseless or zero-filled terms)."""
-        dr = self.cfg.dr
-        noise = {name: getattr(dr, field) if dr.enabled else 0.0 for name, field in OBS_NOISE}
-        return np.concatenate([
-            np.zeros(TERM_SIZES[t["name"]]) if t.get("source", "measured") == "zero" else
-            np.abs(np.broadcast_to(np.asarray(t.get("scale", 1.0), dtype=float),
-                                   TERM_SIZES[t["name"]])) * noise.get(t["name"], 0.0)
-            for t in self.obs_terms])
+        """(49,) half-width of this env's policy-observation noise (:func:`noise_amplitude`)."""
+        return noise_amplitude(self.obs_terms, self.cfg.dr)
 
     def observations(self) -> dict[str, np.ndarray]:
         """{"policy": (N, 49) float32, "critic": (N, 49 + PRIV_SIZE) float32}."""
