@@ -8,6 +8,9 @@
                    [--mirror-legs FR,RR]   (several checkpoints of one run: weights averaged)
   a2i-train eval policies/NAME.onnx [--episodes 100] [--legs FL,FR,RL,RR] [--no-write]
                  [--nominal | --dr-off GROUP[,GROUP]]
+  a2i-train transfer policies/NAME.onnx [--scenarios training,heavy,...] [--episodes 20]
+                 [--legs FL,FR,RL,RR] [--out docs/results/policy_transfer.md]
+                                   (the calibration re-run on sim.go2 under perturbations)
   a2i-train pack OUTDIR            (compiled model + plan pool for a machine without the URDF)
 
 Checkpoints go to ``runs/<run>/model_<it>.pt`` (``runs/`` is not committed).
@@ -89,6 +92,50 @@ def _export(a) -> int:
     onnx_path, json_path = export_policy(a.checkpoint, a.out, a.legs, a.mirror_legs)
     print(f"exported {onnx_path} and {json_path}")
     return 0
+
+
+def _transfer(a) -> int:
+    from policy_train.transfer import SCENARIOS, summarise, timed_run, write_results
+
+    if a.list:
+        for s in SCENARIOS.values():
+            print(f"{s.name:15s} {s.description}")
+        return 0
+    n = a.episodes * len(a.scenarios) * len(a.legs or (1, 1, 1, 1))
+    print(f"transfer: {a.onnx}, scenarios {', '.join(a.scenarios)}, about {n} episodes",
+          flush=True)
+    res, elapsed = timed_run(a.onnx, a.scenarios, a.legs, a.episodes, a.seed, a.workers,
+                             log=lambda s: print(s, flush=True))
+    for s, x in summarise(res).items():
+        legs = " ".join(f"{g} {100 * v:.0f} %" for g, v in x["legs"].items())
+        print(f"{s:15s} success {100 * x['success']:5.1f} % ({legs}); rate "
+              f"{x['rate_rms']:.3f} rad/s, tilt {x['tilt_rms_deg']:.2f} deg, CN p90 "
+              f"{x['cn_p90']:.3f}")
+    if not a.no_write:
+        write_results(res, a.out, a.onnx, a.seed, elapsed)
+        print(f"wrote {a.out} and {Path(a.out).with_suffix('.json')}")
+    return 0
+
+
+def _scenario_list(text: str) -> tuple[str, ...]:
+    from policy_train.transfer import SCENARIOS
+
+    names = tuple(x.strip() for x in text.split(",") if x.strip())
+    bad = [x for x in names if x not in SCENARIOS]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(
+            f"unknown scenario(s) {', '.join(bad) or '(none)'}; known: {', '.join(SCENARIOS)}")
+    return names
+
+
+def _positive(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    return v
 
 
 def _pack(a) -> int:
@@ -206,6 +253,20 @@ def main(argv: list[str] | None = None) -> int:
                    help="hold these randomisation groups nominal, to see what each costs "
                         f"({', '.join(DR_GROUPS)}); writes nothing")
     v.add_argument("--results", default="docs/results/policy.md")
+    x = sub.add_parser("transfer", help="re-run the policy's calibrations on sim.go2 under "
+                                        "perturbations it was not trained for (needs no torch)")
+    x.add_argument("onnx", nargs="?", help="the policy (its .json beside it)")
+    x.add_argument("--scenarios", type=_scenario_list, default=None, metavar="NAME[,NAME]",
+                   help="default: all; --list names them")
+    x.add_argument("--list", action="store_true", help="print the scenarios and exit")
+    x.add_argument("--episodes", type=_positive, default=20, help="per leg and scenario")
+    x.add_argument("--legs", type=_leg_list, default=None,
+                   help="legs to lift, e.g. FL,RR (default: the legs its JSON lists)")
+    x.add_argument("--seed", type=int, default=1)
+    x.add_argument("--workers", type=_positive, default=None, help="processes (default: all cores)")
+    x.add_argument("--no-write", action="store_true", help="print only")
+    x.add_argument("--out", default="docs/results/policy_transfer.md",
+                   help="markdown page; the episodes go beside it as .json")
     k = sub.add_parser("pack", help="compiled model + plan pool for a remote training machine")
     k.add_argument("outdir")
     k.add_argument("--plans-per-leg", type=int, default=8)
@@ -219,10 +280,17 @@ def main(argv: list[str] | None = None) -> int:
                 p.error(f"{name} {path}: no such file")
     if a.cmd == "eval" and a.nominal and a.dr_off:
         p.error("--dr-off needs the randomisation on: drop --nominal")
-    if a.cmd == "eval" and not Path(a.onnx).with_suffix(".json").is_file():
+    if a.cmd == "transfer" and a.onnx is None and not a.list:
+        p.error("transfer needs the policy's .onnx (or --list)")
+    if a.cmd == "transfer" and a.scenarios is None:
+        from policy_train.transfer import SCENARIOS
+
+        a.scenarios = tuple(SCENARIOS)
+    if a.cmd in ("eval", "transfer") and a.onnx and not Path(a.onnx).with_suffix(".json").is_file():
         p.error(f"{Path(a.onnx).with_suffix('.json')}: no policy metadata beside the ONNX file")
     try:
-        return {"tripod": _tripod, "export": _export, "eval": _eval, "pack": _pack}[a.cmd](a)
+        return {"tripod": _tripod, "export": _export, "eval": _eval, "transfer": _transfer,
+                "pack": _pack}[a.cmd](a)
     except (OSError, ValueError) as e:
         print(f"a2i-train {a.cmd}: error: {str(e).splitlines()[0] if str(e) else e!r}",
               file=sys.stderr)

@@ -29,6 +29,7 @@ body contacts), and the whole run for falls.
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -48,10 +49,52 @@ from sim.free_base_run import (
 )
 from sim.sensors import BodyImuModel, EncoderModel
 
-__all__ = ["load_policy", "run_policy_a2i", "run_policy_a2i_per_leg"]
+__all__ = ["Disturbance", "load_policy", "run_policy_a2i", "run_policy_a2i_per_leg"]
 
 _EXCITE = PHASES.index("excite")
 _DONE = PHASES.index("done")
+
+
+@dataclass(frozen=True)
+class Disturbance:
+    """What a free-base run adds to the simulator's own effects, drawn the way the training's
+    randomisation draws it (:class:`policy_train.config.DRConfig`).
+
+    Observation noise, uniform in +- the amplitude and new every policy step: ``noise_ang_vel``
+    (body gyro, rad/s), ``noise_gravity`` (projected gravity, unitless), ``noise_joint_pos``
+    (rad), ``noise_joint_vel`` (rad/s). Pushes: every ``push_interval`` s (uniform in the
+    range) the base's horizontal velocity changes by a uniform +-``push_vel`` m/s per world axis
+    (0: no pushes). seed: the draws.
+    """
+
+    noise_ang_vel: float = 0.0
+    noise_gravity: float = 0.0
+    noise_joint_pos: float = 0.0
+    noise_joint_vel: float = 0.0
+    push_vel: float = 0.0
+    push_interval: tuple[float, float] = (4.0, 8.0)
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for k in ("noise_ang_vel", "noise_gravity", "noise_joint_pos", "noise_joint_vel",
+                  "push_vel"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"{k} must be a finite amplitude >= 0, got {v!r}")
+        lo, hi = self.push_interval
+        if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi):
+            raise ValueError(f"push_interval must be 0 < lo <= hi s, got {self.push_interval!r}")
+
+    def noisy(self, signals: dict, rng: np.random.Generator) -> dict:
+        """``signals`` (deploy.observation names) with this noise added to the sensed terms."""
+        out = dict(signals)
+        for key, a in (("base_ang_vel", self.noise_ang_vel),
+                       ("projected_gravity", self.noise_gravity),
+                       ("joint_pos", self.noise_joint_pos), ("joint_vel", self.noise_joint_vel)):
+            if a > 0:
+                x = np.asarray(signals[key], dtype=float)
+                out[key] = x + rng.uniform(-a, a, x.shape)
+        return out
 
 
 def load_policy(onnx_path) -> PolicyRunner:
@@ -76,6 +119,8 @@ def run_policy_a2i(
     record_every: int = 2,
     encoder: EncoderModel | None = None,
     body_imu: BodyImuModel | None = None,
+    effects=(),
+    disturbance: Disturbance | None = None,
     progress=None,
 ) -> tuple[MotionRun, RunHealth]:
     """The A2I calibration of ``leg`` by the tripod policy on the free-base simulated Go2.
@@ -86,6 +131,9 @@ def run_policy_a2i(
     (None: the JSON's ``lift_schedule.periods``; fewer gives a shorter run, for tests).
     after_s: s simulated after the schedule ends (watched for falls only). timestep: physics
     step, s; record_every: physics steps per recorded sample (2 at 1 kHz = 500 Hz encoders).
+    effects: :class:`sim.effects.Effect` objects of this run's simulator (fresh ones per run;
+    e.g. latency, motor strength, masses, friction). disturbance: observation noise and pushes
+    (:class:`Disturbance`; None: neither).
 
     Returns the :class:`MotionRun` of the excitation phase (sim-time stamps; motion name
     ``a2i_<leg>``) and the :class:`RunHealth` of hold + excitation (``fell`` covers the whole
@@ -112,7 +160,11 @@ def run_policy_a2i(
     idx_m = model_indices(leg)
     idx_s = sdk_indices(leg)
 
-    sim = free_base_sim(timestep, sdk_to_model(pb.default_pose))
+    sim = free_base_sim(timestep, sdk_to_model(pb.default_pose), effects,
+                        0 if disturbance is None else disturbance.seed)
+    rng = None if disturbance is None else np.random.default_rng(disturbance.seed)
+    pushing = disturbance is not None and disturbance.push_vel > 0
+    next_push = rng.uniform(*disturbance.push_interval) if pushing else np.inf
     # the lift command comes on a policy tick, as on board
     n_settle = round(settle_s / pb.control_dt) * n_ctrl
     n_total = n_settle + int(np.ceil((ends[-1] + after_s) / timestep))
@@ -161,6 +213,8 @@ def run_policy_a2i(
                 "commands": zeros3,
                 "lift_command": lift_value if lift_on else none_value,
             }
+            if disturbance is not None:
+                signals = disturbance.noisy(signals, rng)
             obs = build_observation(pb.observation, signals)
             q_cmd = sdk_to_model(runner.step(runner.act(obs)))
             dq_cmd = np.zeros(12)
@@ -176,6 +230,10 @@ def run_policy_a2i(
         elif phase == _DONE:
             kp_c[idx_m], kd_c[idx_m] = kp_m[idx_m], kd_m[idx_m]
         sim.set_command(q_cmd, dq_cmd, kp_c, kd_c, 0.0)
+        if sim.time >= next_push:
+            v = disturbance.push_vel
+            sim.push([rng.uniform(-v, v), rng.uniform(-v, v), 0.0])
+            next_push += rng.uniform(*disturbance.push_interval)
         sim.step()
         # the phase of the state reached after this step
         t_next = t_lift + timestep

@@ -400,6 +400,14 @@ class Go2Sim:
                                    _vec(ang_vel_base, 3, "ang_vel_base")))
         self._stage = 0
 
+    def push(self, dv_world) -> None:
+        """Add ``dv_world`` (m/s, (3,), world frame) to the free base's linear velocity now: a
+        shove, as the training's pushes give one. Only for the ``"free"`` base."""
+        if self.config.base != "free":
+            raise ValueError("only a free base can be pushed")
+        self.data.qvel[self._bv:self._bv + 3] += _vec(dv_world, 3, "dv_world")
+        self._stage = 0
+
     def _write_base(self, s: BaseState) -> None:
         d, b, v = self.data, self._bq, self._bv
         d.qpos[b:b + 3] = s.pos

@@ -1,0 +1,306 @@
+"""Transfer check of a tripod policy: its calibration motions re-run in a second simulator, under
+perturbations the training never saw.
+
+The evaluation (:mod:`policy_train.evaluate`) runs the policy in the environment it was trained
+in (``TripodEnv``: 200 Hz physics, the training model, its randomisation). Here every episode is
+:func:`policy_train.policy_motion.run_policy_a2i` instead: the on-board runner (``deploy``'s
+observation builder and ONNX Runtime) on :mod:`sim.go2` (1 kHz, the motor PD law every physics
+step, the simulator the mock robot and Table I use), one calibration of one leg from standing,
+with a :class:`Scenario`'s perturbations drawn afresh per episode:
+
+* ``nominal``: none;
+* ``training``: the training's randomisation rebuilt from :mod:`sim.effects` and
+  :class:`policy_train.policy_motion.Disturbance` (base mass and centre of mass, foot friction,
+  motor strength standing in for the kp / kd / strength scales, actuation latency, pushes,
+  observation noise);
+* the others: ``training`` with one thing outside its ranges (a heavier payload, a slipperier
+  floor, a longer latency, weaker motors, harder pushes, twice the sensor noise), or not
+  modelled in training at all (joint dry friction), or without the sensor noise.
+
+An episode succeeds as the evaluation's do: no fall over the whole run, and over the hold and
+the excitation no body but a foot on the floor and the lifted foot never down
+(:class:`sim.free_base_run.RunHealth`). Figures over the excitation, of the successful episodes:
+base tilt RMS (deg), base angular rate RMS (rad/s, true), the lifted leg's joint tracking RMSE
+(rad, executed vs commanded) and the CN of its true foot angular velocity over the steady
+periods (the evaluation's definitions).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from calib.atomic import write_text_atomic
+from calib.excitation import covariance_kappa
+from calib.joints import LEGS, check_leg, model_indices
+from sim.effects import ActuationLatency, CoulombFriction, FootFriction, LinkMass, MotorStrength
+
+__all__ = ["SCENARIOS", "EpisodeResult", "Scenario", "render_markdown", "run_episode",
+           "run_transfer", "summarise", "timed_run", "write_results"]
+
+BASE_MASS_KG = 7.277
+"""Mass of the base body of :mod:`sim.go2`'s model, kg (a payload of m kg scales it by
+1 + m / this; ``tests/test_policy_transfer.py`` checks it against the model)."""
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """Perturbations drawn per episode, each uniform in its (lo, hi) range; None leaves the
+    simulator's own value.
+
+    base_mass_add: kg on the base link (mass and inertia scaled). base_com_shift: +- m per axis
+    of the base's centre of mass. friction: foot-floor sliding friction. motor_strength: scale of
+    every motor's torque. latency_s: actuation latency, s. joint_friction: Coulomb friction, N m,
+    on every joint. noise_scale: times the training's observation noise (0: none). push_vel:
+    m/s of the pushes (0: none), every 4-8 s.
+    """
+
+    name: str
+    description: str
+    base_mass_add: tuple[float, float] | None = None
+    base_com_shift: tuple[float, float, float] | None = None
+    friction: tuple[float, float] | None = None
+    motor_strength: tuple[float, float] | None = None
+    latency_s: tuple[float, float] | None = None
+    joint_friction: tuple[float, float] | None = None
+    noise_scale: float = 0.0
+    push_vel: float = 0.0
+
+    def draw(self, rng: np.random.Generator):
+        """This episode's effects (fresh :mod:`sim.effects` objects) and
+        :class:`~policy_train.policy_motion.Disturbance` (seeded from ``rng``)."""
+        from policy_train.config import DRConfig
+        from policy_train.policy_motion import Disturbance
+
+        def u(r):
+            return float(rng.uniform(*r))
+
+        effects = []
+        if self.base_mass_add is not None or self.base_com_shift is not None:
+            add = u(self.base_mass_add) if self.base_mass_add is not None else 0.0
+            c = np.asarray(self.base_com_shift if self.base_com_shift is not None else (0, 0, 0))
+            effects.append(LinkMass(1.0 + add / BASE_MASS_KG, "base", rng.uniform(-c, c)))
+        if self.friction is not None:
+            effects.append(FootFriction(u(self.friction)))
+        if self.motor_strength is not None:
+            effects.append(MotorStrength(u(self.motor_strength)))
+        if self.latency_s is not None:
+            effects.append(ActuationLatency(u(self.latency_s)))
+        if self.joint_friction is not None:
+            effects.append(CoulombFriction(u(self.joint_friction)))
+        dr, k = DRConfig(), self.noise_scale
+        dist = Disturbance(noise_ang_vel=k * dr.noise_ang_vel, noise_gravity=k * dr.noise_gravity,
+                           noise_joint_pos=k * dr.noise_joint_pos,
+                           noise_joint_vel=k * dr.noise_joint_vel, push_vel=self.push_vel,
+                           push_interval=dr.push_interval, seed=int(rng.integers(1 << 31)))
+        return effects, dist
+
+
+def _training_like(name: str, description: str, **changes) -> Scenario:
+    from policy_train.config import DRConfig
+
+    dr = DRConfig()
+    base = Scenario(name, description, base_mass_add=dr.base_mass_add,
+                    base_com_shift=dr.base_com_offset, friction=dr.friction,
+                    motor_strength=(dr.kp_scale[0] * dr.motor_strength[0],
+                                    dr.kp_scale[1] * dr.motor_strength[1]),
+                    latency_s=(0.0, 0.005 * dr.latency_steps[1]), noise_scale=1.0,
+                    push_vel=dr.push_vel)
+    return dataclasses.replace(base, **changes)
+
+
+SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
+    Scenario("nominal", "no perturbation"),
+    _training_like("training", "the training's ranges: base +-1..2 kg, CoM +-3/2/2 cm, friction "
+                   "0.4-1.25, motors x0.77-1.27, latency 0-20 ms, pushes 0.3 m/s, sensor noise"),
+    _training_like("heavy", "training, base payload +3..+5 kg", base_mass_add=(3.0, 5.0)),
+    _training_like("slippery", "training, friction 0.25-0.4", friction=(0.25, 0.4)),
+    _training_like("late", "training, latency 20-40 ms", latency_s=(0.02, 0.04)),
+    _training_like("weak", "training, motors x0.65-0.8", motor_strength=(0.65, 0.8)),
+    _training_like("joint_friction", "training, joint dry friction 0.2-0.6 N m (not trained)",
+                   joint_friction=(0.2, 0.6)),
+    _training_like("shoves", "training, pushes 0.6 m/s", push_vel=0.6),
+    _training_like("noisy", "training, twice the sensor noise", noise_scale=2.0),
+    _training_like("quiet", "training without sensor noise", noise_scale=0.0),
+]}
+
+
+@dataclass
+class EpisodeResult:
+    """One transfer episode. Figures over the excitation (NaN if it failed): tilt_rms_deg,
+    rate_rms (rad/s), track_rmse (rad), cn. causes: what failed (empty on success)."""
+
+    scenario: str
+    leg: str
+    episode: int
+    success: bool
+    causes: list[str] = field(default_factory=list)
+    tilt_rms_deg: float = float("nan")
+    rate_rms: float = float("nan")
+    track_rmse: float = float("nan")
+    cn: float = float("nan")
+
+
+def _episode_seed(seed: int, scenario: str, leg: str, episode: int) -> np.random.Generator:
+    key = [seed, list(SCENARIOS).index(scenario) if scenario in SCENARIOS else 99,
+           LEGS.index(leg), episode]
+    return np.random.default_rng(np.random.SeedSequence(key))
+
+
+def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed: int = 1,
+                periods: int | None = None) -> EpisodeResult:
+    """One calibration of ``leg`` by the policy under ``scenario`` (its draws from ``seed``,
+    the scenario, the leg and ``episode``). periods: None for the JSON's."""
+    from policy_train.policy_motion import run_policy_a2i
+
+    effects, dist = scenario.draw(_episode_seed(seed, scenario.name, leg, episode))
+    run, h = run_policy_a2i(onnx_path, leg, periods=periods, effects=effects, disturbance=dist)
+    causes = []
+    if h.fell:
+        causes.append("fall")
+    if h.lifted_foot_touched:
+        causes.append("lifted foot down")
+    causes += [f"{b} on floor" for b in h.body_contacts if b != "base"]
+    res = EpisodeResult(scenario.name, leg, episode, not causes, causes)
+    if causes:
+        return res
+    ramp = 1.0  # the excitation's lead-in / lead-out (calib.excitation.ExcitationConfig.ramp)
+    steady = (run.t >= run.t[0] + ramp) & (run.t <= run.t[-1] - ramp)
+    track = run.tracking_rmse[model_indices(leg)]
+    res.tilt_rms_deg = h.tilt_rms_deg
+    res.rate_rms = float(np.sqrt(np.mean(np.sum(run.base_gyro ** 2, axis=1))))
+    res.track_rmse = float(np.sqrt(np.mean(track ** 2)))
+    res.cn = float(covariance_kappa(run.foot_omega[LEGS.index(leg)][steady]))
+    return res
+
+
+def _job(args) -> EpisodeResult:
+    return run_episode(*args)
+
+
+def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int = 1,
+                 workers: int | None = None, periods: int | None = None,
+                 progress=None) -> list[EpisodeResult]:
+    """``episodes`` per leg of ``legs`` (default: the legs the policy's JSON lists) under each
+    of ``scenarios`` (names of :data:`SCENARIOS`). workers: processes (None: all cores).
+    progress(done, total): optional."""
+    from pathlib import Path
+
+    if episodes < 1:
+        raise ValueError(f"episodes must be >= 1, got {episodes}")
+    unknown = [s for s in scenarios if s not in SCENARIOS]
+    if unknown or not scenarios:
+        raise ValueError(f"unknown scenario(s) {', '.join(unknown) or '(none given)'}; known: "
+                         f"{', '.join(SCENARIOS)}")
+    onnx_path = Path(onnx_path)
+    meta = json.loads(onnx_path.with_suffix(".json").read_text())
+    legs = [check_leg(g) for g in (legs or meta.get("legs", LEGS))]
+    jobs = [(str(onnx_path), SCENARIOS[s], leg, e, seed, periods)
+            for s in scenarios for leg in legs for e in range(episodes)]
+    out: list[EpisodeResult] = []
+    with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
+        for i, r in enumerate(pool.map(_job, jobs), 1):
+            out.append(r)
+            if progress is not None:
+                progress(i, len(jobs))
+    return out
+
+
+def _rms(xs) -> float:
+    return float(np.sqrt(np.mean(np.square(xs)))) if len(xs) else float("nan")
+
+
+def summarise(results: list[EpisodeResult]) -> dict:
+    """{scenario: {"legs": {leg: success rate}, "success", "tilt_rms_deg", "rate_rms",
+    "track_rmse", "cn_median", "cn_p90", "causes": {cause: episodes}}}; pooled over legs,
+    the figures over the successful episodes (RMS figures pooled as RMS)."""
+    out = {}
+    for s in dict.fromkeys(r.scenario for r in results):
+        rs = [r for r in results if r.scenario == s]
+        ok = [r for r in rs if r.success]
+        causes: dict[str, int] = {}
+        for r in rs:
+            for c in r.causes:
+                causes[c] = causes.get(c, 0) + 1
+        cn = [r.cn for r in ok]
+        out[s] = {
+            "legs": {g: float(np.mean([r.success for r in rs if r.leg == g]))
+                     for g in dict.fromkeys(r.leg for r in rs)},
+            "episodes": len(rs),
+            "success": float(np.mean([r.success for r in rs])),
+            "tilt_rms_deg": _rms([r.tilt_rms_deg for r in ok]),
+            "rate_rms": _rms([r.rate_rms for r in ok]),
+            "track_rmse": _rms([r.track_rmse for r in ok]),
+            "cn_median": float(np.median(cn)) if cn else float("nan"),
+            "cn_p90": float(np.percentile(cn, 90)) if cn else float("nan"),
+            "causes": dict(sorted(causes.items(), key=lambda kv: -kv[1])),
+        }
+    return out
+
+
+def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
+                    elapsed_s: float | None = None) -> str:
+    """The page of ``a2i-train transfer`` (one row per scenario)."""
+    summ = summarise(results)
+    legs = list(dict.fromkeys(r.leg for r in results))
+    n = max(1, len(results) // max(1, len(summ) * len(legs)))
+    lines = [
+        "# Tripod policy transfer: a second simulator, perturbations not trained for",
+        "",
+        (f"Produced by `a2i-train transfer {policy} --episodes {n} --seed {seed}` "
+        "(`policy_train/transfer.py`): each episode is one calibration of one leg by the "
+        "on-board runner on `sim.go2` (1 kHz, free base on the floor: the mock robot's "
+        "simulator, not the training environment), with the scenario's perturbations drawn "
+        "afresh. Success: no fall, and over hold and excitation no body but a foot on the floor "
+        "and the lifted foot never down. Figures over the excitation of the successful episodes, "
+        "pooled over legs; the evaluation's targets: success 99 %, tilt 3 deg, rate 0.1 rad/s, "
+         "tracking 0.05 rad, CN 1.2."),
+        "",
+        (f"| scenario | what | episodes | success | {' / '.join(legs)} | tilt RMS deg | "
+         "rate RMS rad/s | tracking rad | CN median (p90) | failures |"),
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for s, x in summ.items():
+        per_leg = " / ".join(f"{100 * x['legs'].get(g, float('nan')):.0f}" for g in legs)
+        causes = ", ".join(f"{c} {k}" for c, k in x["causes"].items()) or "-"
+        lines.append(
+            f"| {s} | {SCENARIOS[s].description} | {x['episodes']} | "
+            f"{100 * x['success']:.0f} % | {per_leg} % | {x['tilt_rms_deg']:.2f} | "
+            f"{x['rate_rms']:.3f} | {x['track_rmse']:.3f} | {x['cn_median']:.3f} "
+            f"({x['cn_p90']:.3f}) | {causes} |")
+    if elapsed_s is not None:
+        lines += ["", f"Wall time: {elapsed_s:.0f} s."]
+    return "\n".join(lines) + "\n"
+
+
+def write_results(results: list[EpisodeResult], out_md, policy: str, seed: int,
+                  elapsed_s: float | None = None) -> None:
+    """The markdown page at ``out_md`` and the episodes beside it (``.json``), atomically."""
+    from pathlib import Path
+
+    out_md = Path(out_md)
+    write_text_atomic(out_md, render_markdown(results, policy, seed, elapsed_s))
+    rows = [dataclasses.asdict(r) for r in results]
+    write_text_atomic(out_md.with_suffix(".json"),
+                      json.dumps({"policy": policy, "seed": seed, "elapsed_s": elapsed_s,
+                                  "episodes": rows}, indent=1, allow_nan=True) + "\n")
+
+
+def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None, log=print):
+    """:func:`run_transfer` with a progress line about every 10 % (for the CLI)."""
+    t0 = time.time()
+    last = [0.0]
+
+    def progress(done, total):
+        if done == total or done / total - last[0] >= 0.1:
+            last[0] = done / total
+            log(f"  {done}/{total} episodes, {time.time() - t0:.0f} s")
+
+    res = run_transfer(onnx_path, scenarios, legs, episodes, seed, workers, periods, progress)
+    return res, time.time() - t0

@@ -1,0 +1,154 @@
+"""Transfer check (policy_train.transfer): scenarios draw the effects and disturbances they name,
+the disturbance reaches the policy's observation and the base, an episode on sim.go2 is scored
+as the evaluation scores, and the CLI writes its page."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mujoco")
+pytest.importorskip("onnxruntime")
+
+from policy_train.cli import main
+from policy_train.config import DRConfig
+from policy_train.policy_motion import Disturbance
+from policy_train.transfer import (
+    BASE_MASS_KG,
+    SCENARIOS,
+    EpisodeResult,
+    render_markdown,
+    run_episode,
+    summarise,
+)
+from sim.effects import ActuationLatency, CoulombFriction, FootFriction, LinkMass, MotorStrength
+from sim.free_base_run import free_base_sim
+from sim.go2 import Go2Sim, SimConfig
+
+POLICY = Path(__file__).resolve().parents[1] / "policies" / "tripod_go2_v7.onnx"
+
+
+def test_base_mass_is_the_simulators():
+    sim = free_base_sim()
+    assert sim.model.body("base").mass[0] == pytest.approx(BASE_MASS_KG, abs=1e-6)
+
+
+def test_training_scenario_draws_the_training_ranges():
+    dr = DRConfig()
+    for seed in range(20):
+        effects, dist = SCENARIOS["training"].draw(np.random.default_rng(seed))
+        kinds = {type(e): e for e in effects}
+        assert set(kinds) == {LinkMass, FootFriction, MotorStrength, ActuationLatency}
+        add = (kinds[LinkMass].scale - 1.0) * BASE_MASS_KG
+        assert dr.base_mass_add[0] - 1e-9 <= add <= dr.base_mass_add[1] + 1e-9
+        assert np.all(np.abs(kinds[LinkMass].com_shift) <= np.array(dr.base_com_offset) + 1e-12)
+        assert dr.friction[0] <= kinds[FootFriction].mu <= dr.friction[1]
+        assert 0 <= kinds[ActuationLatency].seconds <= 0.020 + 1e-12
+        assert dist.noise_joint_vel == dr.noise_joint_vel and dist.push_vel == dr.push_vel
+    # the scenarios beyond the training change what they say and keep the rest
+    effects, dist = SCENARIOS["joint_friction"].draw(np.random.default_rng(0))
+    f = [e for e in effects if isinstance(e, CoulombFriction)]
+    assert len(f) == 1 and np.all((f[0].value >= 0.2) & (f[0].value <= 0.6))
+    assert SCENARIOS["quiet"].draw(np.random.default_rng(0))[1].noise_joint_vel == 0.0
+    assert SCENARIOS["noisy"].draw(np.random.default_rng(0))[1].noise_joint_vel == 2 * 1.5
+    effects, dist = SCENARIOS["nominal"].draw(np.random.default_rng(0))
+    assert effects == [] and dist.push_vel == 0 and dist.noise_ang_vel == 0
+    # the same generator state draws the same episode
+    a = SCENARIOS["training"].draw(np.random.default_rng(5))
+    b = SCENARIOS["training"].draw(np.random.default_rng(5))
+    assert repr(a[0]) == repr(b[0]) and a[1] == b[1]
+
+
+def test_disturbance_noise_is_bounded_and_only_on_sensed_terms():
+    d = Disturbance(noise_ang_vel=0.2, noise_gravity=0.05, noise_joint_pos=0.01,
+                    noise_joint_vel=1.5)
+    rng = np.random.default_rng(0)
+    sig = {"base_ang_vel": np.zeros(3), "projected_gravity": np.array([0, 0, -1.0]),
+           "joint_pos": np.ones(12), "joint_vel": np.zeros(12), "commands": np.zeros(3)}
+    outs = [d.noisy(sig, rng) for _ in range(200)]
+    for key, a in (("base_ang_vel", 0.2), ("projected_gravity", 0.05), ("joint_pos", 0.01),
+                   ("joint_vel", 1.5)):
+        dev = np.array([o[key] - sig[key] for o in outs])
+        assert np.abs(dev).max() <= a and np.abs(dev).max() > 0.9 * a
+    assert all(o["commands"] is sig["commands"] for o in outs)
+    with pytest.raises(ValueError, match="noise_joint_vel"):
+        Disturbance(noise_joint_vel=-1.0)
+    with pytest.raises(ValueError, match="push_interval"):
+        Disturbance(push_interval=(5.0, 1.0))
+
+
+def test_push_changes_the_free_base_velocity_only():
+    sim = free_base_sim()
+    v0 = sim.data.qvel[:6].copy()
+    sim.push([0.3, -0.2, 0.0])
+    np.testing.assert_allclose(sim.data.qvel[:3] - v0[:3], [0.3, -0.2, 0.0])
+    np.testing.assert_allclose(sim.data.qvel[3:6], v0[3:6])
+    sim.step(5)  # and the physics goes on from it
+    assert sim.data.qvel[0] > 0.2
+    with pytest.raises(ValueError, match="free base"):
+        Go2Sim(SimConfig(base="fixed", floor=False)).push([0.1, 0, 0])
+
+
+@pytest.fixture(scope="module")
+def episodes():
+    if not POLICY.is_file():
+        pytest.skip("no shipped policy")
+    nominal = run_episode(str(POLICY), SCENARIOS["nominal"], "FL", 0, periods=1)
+    late = run_episode(str(POLICY), SCENARIOS["late"], "FL", 0, periods=1)
+    return nominal, late
+
+
+def test_nominal_episode_holds_the_tripod_with_the_evaluations_figures(episodes):
+    nominal, _ = episodes
+    assert nominal.success and nominal.causes == []
+    assert 0 < nominal.tilt_rms_deg < 3
+    assert 0 < nominal.rate_rms < 0.2
+    assert 0 < nominal.track_rmse < 0.05
+    assert 1.0 <= nominal.cn < 1.3
+
+
+def test_perturbed_episode_differs_and_summarises(episodes):
+    nominal, late = episodes
+    # 20-40 ms of latency and the training's noise move the base much more than nothing does
+    assert (not late.success) or late.rate_rms > 2 * nominal.rate_rms
+    failed = EpisodeResult("late", "RL", 1, False, ["fall", "RR_calf on floor"])
+    s = summarise([nominal, late, failed])
+    assert s["nominal"]["success"] == 1.0 and s["nominal"]["legs"] == {"FL": 1.0}
+    assert s["late"]["episodes"] == 2 and s["late"]["causes"]["fall"] >= 1
+    assert s["late"]["legs"]["RL"] == 0.0
+    page = render_markdown([nominal, late, failed], "p.onnx", 1)
+    assert "| nominal | no perturbation | 1 | 100 % |" in page
+    assert "RR_calf on floor 1" in page
+
+
+def test_cli_writes_page_and_episodes(tmp_path, capsys):
+    if not POLICY.is_file():
+        pytest.skip("no shipped policy")
+    out = tmp_path / "transfer.md"
+    rc = main(["transfer", str(POLICY), "--scenarios", "nominal", "--legs", "RR",
+               "--episodes", "1", "--workers", "1", "--out", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "1/1 episodes" in text and "nominal" in text
+    page = out.read_text()
+    assert "| nominal |" in page and "RR" in page
+    rows = json.loads(out.with_suffix(".json").read_text())["episodes"]
+    assert len(rows) == 1 and rows[0]["leg"] == "RR" and rows[0]["success"] is True
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["transfer"], "needs the policy"),
+    (["transfer", "POLICY", "--scenarios", "moon"], "unknown scenario(s) moon"),
+    (["transfer", "POLICY", "--episodes", "0"], "must be >= 1"),
+    (["transfer", "nowhere.onnx"], "no such file"),
+])
+def test_cli_bad_input_is_one_line_exit_2(argv, message, capsys):
+    argv = [str(POLICY) if a == "POLICY" else a for a in argv]
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert message in err[-1]
