@@ -147,6 +147,10 @@ class EpisodeResult:
     cn: float = float("nan")
 
 
+TOP_CAUSES = 6
+"""Failure kinds shown per scenario on the page."""
+
+
 def _episode_seed(seed: int, scenario: str, leg: str, episode: int) -> np.random.Generator:
     key = [seed, list(SCENARIOS).index(scenario) if scenario in SCENARIOS else 99,
            LEGS.index(leg), episode]
@@ -260,7 +264,9 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
         "afresh. Success: no fall, and over hold and excitation no body but a foot on the floor "
         "and the lifted foot never down. Figures over the excitation of the successful episodes, "
         "pooled over legs; the evaluation's targets: success 99 %, tilt 3 deg, rate 0.1 rad/s, "
-         "tracking 0.05 rad, CN 1.2."),
+        "tracking 0.05 rad, CN 1.2. Failures: in how many episodes each thing happened (an "
+        "episode that tips over counts a fall and every body that touched the floor; the "
+        f"commonest {TOP_CAUSES}; the `.json` beside this page has every episode)."),
         "",
         (f"| scenario | what | episodes | success | {' / '.join(legs)} | tilt RMS deg | "
          "rate RMS rad/s | tracking rad | CN median (p90) | failures |"),
@@ -268,7 +274,10 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
     ]
     for s, x in summ.items():
         per_leg = " / ".join(f"{100 * x['legs'].get(g, float('nan')):.0f}" for g in legs)
-        causes = ", ".join(f"{c} {k}" for c, k in x["causes"].items()) or "-"
+        top = list(x["causes"].items())[:TOP_CAUSES]
+        causes = ", ".join(f"{c} {k}" for c, k in top) or "-"
+        if len(x["causes"]) > TOP_CAUSES:
+            causes += ", ..."
         lines.append(
             f"| {s} | {SCENARIOS[s].description} | {x['episodes']} | "
             f"{100 * x['success']:.0f} % | {per_leg} % | {x['tilt_rms_deg']:.2f} | "
