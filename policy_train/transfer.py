@@ -295,10 +295,10 @@ def write_results(results: list[EpisodeResult], out_md, policy: str, seed: int,
 
     out_md = Path(out_md)
     write_text_atomic(out_md, render_markdown(results, policy, seed, elapsed_s))
-    rows = [dataclasses.asdict(r) for r in results]
-    write_text_atomic(out_md.with_suffix(".json"),
-                      json.dumps({"policy": policy, "seed": seed, "elapsed_s": elapsed_s,
-                                  "episodes": rows}, indent=1, allow_nan=True) + "\n")
+    # one episode per line: a few hundred short rows stay small and diff well
+    head = json.dumps({"policy": policy, "seed": seed, "elapsed_s": elapsed_s})[:-1]
+    rows = ",\n".join(json.dumps(dataclasses.asdict(r)) for r in results)
+    write_text_atomic(out_md.with_suffix(".json"), f'{head}, "episodes": [\n{rows}\n]}}\n')
 
 
 def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None, log=print):
