@@ -12,7 +12,7 @@ with a :class:`Scenario`'s perturbations drawn afresh per episode:
 * ``training``: the training's randomisation rebuilt from :mod:`sim.effects` and
   :class:`policy_train.policy_motion.Disturbance` (base mass and centre of mass, foot friction,
   motor strength standing in for the kp / kd / strength scales, actuation latency, pushes,
-  observation noise);
+  observation noise; the other links' masses and the armature are left nominal);
 * the others: ``training`` with one thing outside its ranges (a heavier payload, a slipperier
   floor, a longer latency, weaker motors, harder pushes, twice the sensor noise), or not
   modelled in training at all (joint dry friction), or without the sensor noise.
@@ -117,7 +117,7 @@ def _training_like(name: str, description: str, **changes) -> Scenario:
 
 SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
     Scenario("nominal", "no perturbation"),
-    _training_like("training", "the training's ranges: base +-1..2 kg, CoM +-3/2/2 cm, friction "
+    _training_like("training", "the training's ranges: base -1..+2 kg, CoM +-3/2/2 cm, friction "
                    "0.4-1.25, motors x0.77-1.27, latency 0-20 ms, pushes 0.3 m/s, sensor noise"),
     _training_like("heavy", "training, base payload +3..+5 kg", base_mass_add=(3.0, 5.0)),
     _training_like("slippery", "training, friction 0.25-0.4", friction=(0.25, 0.4)),
