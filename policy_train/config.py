@@ -88,6 +88,14 @@ class DRConfig:
         return out
 
 
+OBS_NOISE: tuple[tuple[str, str], ...] = (
+    ("base_ang_vel", "noise_ang_vel"), ("projected_gravity", "noise_gravity"),
+    ("joint_pos", "noise_joint_pos"), ("joint_vel", "noise_joint_vel"))
+"""Observation term -> the ``DRConfig`` field of its uniform noise half-width (the term's
+signal units), in the order the noise is drawn (``TripodEnv``; ``policy_motion.Disturbance``
+has fields of the same names)."""
+
+
 # the randomisation in groups that can be switched off one at a time (``a2i-train eval
 # --dr-off``), to see which one costs the policy what: each maps fields to nominal values
 DR_GROUPS: dict[str, dict] = {

@@ -32,7 +32,7 @@ from calib.joints import (
 )
 from deploy.lift_schedule import PHASES, blend_targets
 from deploy.observation import TERM_SIZES, build_observation, default_terms, projected_gravity
-from policy_train.config import EnvConfig
+from policy_train.config import OBS_NOISE, EnvConfig
 from policy_train.model import TrainModel
 from policy_train.rewards import compute_rewards
 from policy_train.tripod_pose import tripod_pose
@@ -42,11 +42,6 @@ __all__ = ["LIFT_VALUES", "OBS_NOISE", "PRIV_TERMS", "PlanPool", "TripodEnv", "n
 LIFT_VALUES = {"none": 0, "FL": 1, "FR": 2, "RL": 3, "RR": 4}
 """Value of the ``lift_command`` observation per leg (paper: c_lift in {0, ..., 4})."""
 
-OBS_NOISE: tuple[tuple[str, str], ...] = (
-    ("base_ang_vel", "noise_ang_vel"), ("projected_gravity", "noise_gravity"),
-    ("joint_pos", "noise_joint_pos"), ("joint_vel", "noise_joint_vel"))
-"""Observation term -> the ``DRConfig`` field of its uniform noise half-width (the term's
-signal units), in the order the noise is drawn."""
 
 
 

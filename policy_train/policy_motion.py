@@ -38,6 +38,7 @@ from calib.joints import check_leg, model_indices, model_to_sdk, sdk_indices, sd
 from deploy.lift_schedule import PHASES, blend_targets
 from deploy.observation import build_observation, projected_gravity
 from deploy.policy import PolicyMeta, PolicyRunner
+from policy_train.config import OBS_NOISE
 from sim.calibration_run import MotionRun
 from sim.free_base_run import (
     FALL_HEIGHT,
@@ -58,7 +59,8 @@ _DONE = PHASES.index("done")
 @dataclass(frozen=True)
 class Disturbance:
     """What a free-base run adds to the simulator's own effects, drawn the way the training's
-    randomisation draws it (:class:`policy_train.config.DRConfig`).
+    randomisation draws it (:class:`policy_train.config.DRConfig`; the noise fields are named as
+    its own, and :data:`policy_train.config.OBS_NOISE` maps them to the observation terms).
 
     Observation noise, uniform in +- the amplitude and new every policy step: ``noise_ang_vel``
     (body gyro, rad/s), ``noise_gravity`` (projected gravity, unitless), ``noise_joint_pos``
@@ -88,9 +90,8 @@ class Disturbance:
     def noisy(self, signals: dict, rng: np.random.Generator) -> dict:
         """``signals`` (deploy.observation names) with this noise added to the sensed terms."""
         out = dict(signals)
-        for key, a in (("base_ang_vel", self.noise_ang_vel),
-                       ("projected_gravity", self.noise_gravity),
-                       ("joint_pos", self.noise_joint_pos), ("joint_vel", self.noise_joint_vel)):
+        for key, fld in OBS_NOISE:
+            a = getattr(self, fld)
             if a > 0:
                 x = np.asarray(signals[key], dtype=float)
                 out[key] = x + rng.uniform(-a, a, x.shape)

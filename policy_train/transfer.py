@@ -75,7 +75,7 @@ class Scenario:
     def draw(self, rng: np.random.Generator):
         """This episode's effects (fresh :mod:`sim.effects` objects) and
         :class:`~policy_train.policy_motion.Disturbance` (seeded from ``rng``)."""
-        from policy_train.config import DRConfig
+        from policy_train.config import OBS_NOISE, DRConfig
         from policy_train.policy_motion import Disturbance
 
         def u(r):
@@ -94,11 +94,10 @@ class Scenario:
             effects.append(ActuationLatency(u(self.latency_s)))
         if self.joint_friction is not None:
             effects.append(CoulombFriction(u(self.joint_friction)))
-        dr, k = DRConfig(), self.noise_scale
-        dist = Disturbance(noise_ang_vel=k * dr.noise_ang_vel, noise_gravity=k * dr.noise_gravity,
-                           noise_joint_pos=k * dr.noise_joint_pos,
-                           noise_joint_vel=k * dr.noise_joint_vel, push_vel=self.push_vel,
-                           push_interval=dr.push_interval, seed=int(rng.integers(1 << 31)))
+        dr = DRConfig()
+        noise = {fld: self.noise_scale * getattr(dr, fld) for _, fld in OBS_NOISE}
+        dist = Disturbance(**noise, push_vel=self.push_vel, push_interval=dr.push_interval,
+                           seed=int(rng.integers(1 << 31)))
         return effects, dist
 
 
