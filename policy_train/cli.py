@@ -3,11 +3,11 @@
   a2i-train tripod [--iterations N] [--seed S] [--num-envs N] [--resume CKPT [CKPT ...]
                    [--new-rewards]]
                    [--lift-leg-weights FL,FR,RL,RR] [--[no-]mirror-augmentation] [--run-dir D]
-                   [--export policies/NAME]
+                   [--dr FIELD=VALUE ...] [--export policies/NAME]
   a2i-train export CHECKPOINT [CHECKPOINT ...] --out policies/NAME [--legs RL,RR]
                    [--mirror-legs FR,RR]   (several checkpoints of one run: weights averaged)
   a2i-train eval policies/NAME.onnx [--episodes 100] [--legs FL,FR,RL,RR] [--no-write]
-                 [--nominal | --dr-off GROUP[,GROUP]]
+                 [--nominal | --dr-off GROUP[,GROUP]] [--randomisation standard|training]
   a2i-train transfer policies/NAME.onnx [--scenarios training,heavy,...] [--episodes 20]
                  [--legs FL,FR,RL,RR] [--out docs/results/policy_transfer.md]
                                    (the calibration re-run on sim.go2 under perturbations)
@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-from policy_train.config import DR_GROUPS, DRConfig
+from policy_train.config import DR_GROUPS, RANDOMISATIONS, DRConfig
 
 __all__ = ["main"]
 
@@ -65,6 +65,8 @@ def _tripod(a) -> int:
             setattr(section, field, getattr(a, arg))
     if a.mirror_augmentation is not None:
         cfg.ppo.mirror_augmentation = a.mirror_augmentation
+    for field, value in a.dr:
+        setattr(cfg.env.dr, field, value)
     run_dir = Path(a.run_dir or f"runs/tripod_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
     t0 = time.time()
     tr = Trainer(cfg, run_dir, seed=a.seed, log=lambda s: print(s, flush=True))
@@ -162,7 +164,7 @@ def _eval(a) -> int:
 
     evaluate_policy(a.onnx, episodes=a.episodes, legs=a.legs, seed=a.seed,
                     write=not a.no_write, results_path=a.results, nominal=a.nominal,
-                    dr_off=a.dr_off)
+                    dr_off=a.dr_off, randomisation=a.randomisation)
     return 0
 
 
@@ -187,6 +189,31 @@ def _leg_list(text: str) -> tuple[str, ...]:
         return tuple(check_leg(g.strip()) for g in text.split(","))
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _dr_setting(text: str) -> tuple[str, object]:
+    """argparse type: ``FIELD=VALUE`` for a ``DRConfig`` field; a range as ``LO,HI``, in the
+    field's units and type (``latency_steps=0,6``, ``push_vel=0.5``)."""
+    from dataclasses import fields
+
+    known = {f.name: getattr(DRConfig(), f.name) for f in fields(DRConfig) if f.name != "enabled"}
+    field, sep, value = text.partition("=")
+    if not sep or field not in known:
+        raise argparse.ArgumentTypeError(f"{text!r}: give FIELD=VALUE, FIELD one of "
+                                          f"{', '.join(known)}")
+    default = known[field]
+    kind = type(default[0]) if isinstance(default, tuple) else type(default)
+    try:
+        parts = tuple(kind(x) for x in value.split(","))
+    except ValueError:
+        parts = ()
+    n = len(default) if isinstance(default, tuple) else 1
+    if len(parts) != n or any(x < 0 for x in parts if field != "base_mass_add") or (
+            n == 2 and parts[0] > parts[1]):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: {field} takes {n} {kind.__name__} value(s)"
+            + (" LO,HI with LO <= HI" if n == 2 else "") + f", e.g. {default}")
+    return field, parts if isinstance(default, tuple) else parts[0]
 
 
 def _weights(text: str) -> tuple[float, ...]:
@@ -215,6 +242,10 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--entropy-coef", type=float, default=None, help="PPO entropy bonus")
     t.add_argument("--lift-leg-weights", type=_weights, default=None, metavar="FL,FR,RL,RR",
                    help="how often each leg is lifted, e.g. 3,3,1,1 (default 2,2,1,1)")
+    t.add_argument("--dr", type=_dr_setting, action="append", default=[],
+                   metavar="FIELD=VALUE", help="domain randomisation setting (repeatable), "
+                   "e.g. --dr motor_strength=0.75,1.1 --dr latency_steps=0,6; on --resume it "
+                   "changes the run's own")
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this")
     t.add_argument("--model-file", default=None, help="compiled training model (.mjb)")
     t.add_argument("--plan-pool", default=None, help="precomputed excitation plan pool (.npz)")
@@ -252,6 +283,9 @@ def main(argv: list[str] | None = None) -> int:
     v.add_argument("--dr-off", type=_dr_groups, default=(), metavar="GROUP[,GROUP]",
                    help="hold these randomisation groups nominal, to see what each costs "
                         f"({', '.join(DR_GROUPS)}); writes nothing")
+    v.add_argument("--randomisation", choices=RANDOMISATIONS, default="standard",
+                   help="standard: DRConfig's defaults, the same for every policy (written); "
+                        "training: the policy's own training ranges (writes nothing)")
     v.add_argument("--results", default="docs/results/policy.md")
     x = sub.add_parser("transfer", help="re-run the policy's calibrations on sim.go2 under "
                                         "perturbations it was not trained for (needs no torch)")

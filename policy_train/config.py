@@ -67,6 +67,9 @@ class DRConfig:
     kd_scale: tuple[float, float] = (0.8, 1.2)
     motor_strength: tuple[float, float] = (0.9, 1.1)        # scales the motor torque law
     latency_steps: tuple[int, int] = (0, 4)                 # physics steps (x 5 ms): 0-20 ms
+    # dry (Coulomb) friction of each leg joint, N m, drawn per joint and episode. Off in v7's
+    # training (v7 did better with it on sim.go2 than without: docs/results/policy_transfer.md)
+    joint_friction: tuple[float, float] = (0.0, 0.0)
     push_interval: tuple[float, float] = (4.0, 8.0)         # s between pushes
     push_vel: float = 0.3                                   # m/s added to base vx, vy (+-)
     init_joint_noise: float = 0.1                           # rad added to the start pose
@@ -105,10 +108,17 @@ DR_GROUPS: dict[str, dict] = {
     "friction": {"friction": (0.8, 0.8)},
     "gains": {"kp_scale": (1.0, 1.0), "kd_scale": (1.0, 1.0), "motor_strength": (1.0, 1.0)},
     "latency": {"latency_steps": (0, 0)},
+    "joint_friction": {"joint_friction": (0.0, 0.0)},
     "pushes": {"push_vel": 0.0},
     "obs_noise": {"noise_ang_vel": 0.0, "noise_gravity": 0.0, "noise_joint_pos": 0.0,
                   "noise_joint_vel": 0.0},
 }
+
+
+RANDOMISATIONS = ("standard", "training")
+"""Which ranges an evaluation draws from: ``standard``, ``DRConfig``'s defaults (latency
+0-20 ms, ...), the same for every policy, so policies trained on different ranges compare;
+``training``, the policy's own training ranges (its JSON's)."""
 
 
 @dataclass
@@ -225,6 +235,7 @@ class TrainConfig:
             e["train_periods"] = (e["train_periods"], e["train_periods"])
         dr = {k: tuple(v) if isinstance(v, list) else v for k, v in e.pop("dr").items()}
         dr.setdefault("armature", (0.01, 0.01))  # fixed at the model's ARMATURE before v5
+        dr.setdefault("joint_friction", (0.0, 0.0))  # configurations before it had none
         e = {k: tuple(v) if isinstance(v, list) else v for k, v in e.items()}
         p = {k: tuple(v) if isinstance(v, list) else v for k, v in d["ppo"].items()}
         p.setdefault("mirror_augmentation", False)  # not used before v5

@@ -197,6 +197,7 @@ class TripodEnv:
         self._masses_nominal = m.body_mass.copy()
         self._ipos_nominal = m.body_ipos.copy()
         self._fric = b.expand("geom_friction")
+        self._joint_fric = b.expand("dof_frictionloss")
         self._feet_geoms = np.array([m.geom(f"{leg}_foot").id for leg in MODEL_LEGS] + [m.geom("floor").id])
         # level tripod stances in static equilibrium, one per lifted leg (reference starts)
         self.ref_poses = [tripod_pose(
@@ -223,7 +224,11 @@ class TripodEnv:
         N = self.N
         z = np.zeros
         self.target = z((N, 12))
-        self.prev_target = z((N, 12))
+        # targets of the previous policy steps, newest first: what a motor still runs on while
+        # the latest target is in flight (latency_steps up to this many policy steps)
+        cfg = self.cfg
+        depth = max(1, -(-cfg.dr.latency_steps[1] // cfg.decimation)) if cfg.dr.enabled else 1
+        self.past_targets = z((N, depth, 12))
         self.actions = z((N, 12))          # raw, SDK order
         self.prev_actions = z((N, 12))
         self.last_qvel = z((N, 12))
@@ -293,7 +298,7 @@ class TripodEnv:
         self.qvel[ids] = 0.0
         self.ctrl[ids] = q
         self.target[ids] = q
-        self.prev_target[ids] = q
+        self.past_targets[ids] = np.broadcast_to(q, (n, 12))[:, None]
         self.actions[ids] = 0.0
         self.prev_actions[ids] = 0.0
         self.last_qvel[ids] = 0.0
@@ -305,6 +310,8 @@ class TripodEnv:
             self.latency[ids] = rng.integers(dr.latency_steps[0], dr.latency_steps[1] + 1, n)
             self.friction[ids] = rng.uniform(*dr.friction, n)
             self.push_timer[ids] = rng.uniform(*dr.push_interval, n)
+            if dr.joint_friction[1] > 0:  # drawn only when on: older configs keep their draws
+                self._joint_fric[ids, 6:] = rng.uniform(*dr.joint_friction, (n, 12))
         else:
             self.kp_s[ids] = self.kd_s[ids] = self.strength[ids] = 1.0
             self.latency[ids] = 0
@@ -354,7 +361,7 @@ class TripodEnv:
         self.qpos[ids] = qp
         self.qvel[ids] = 0.0
         self.target[ids] = tg
-        self.prev_target[ids] = tg
+        self.past_targets[ids] = tg[:, None]
         self.ctrl[ids] = tg
         d = self.lift_dur[ids]
         self.lift_t[ids] = np.where(sh, alpha[:, 0] * d[:, 0],
@@ -421,7 +428,8 @@ class TripodEnv:
         self.prev_actions[:] = self.actions
         self.actions[:] = a
         a_m = sdk_to_model(np.clip(a, -cfg.action_clip, cfg.action_clip))
-        self.prev_target[:] = self.target
+        self.past_targets[:, 1:] = self.past_targets[:, :-1]
+        self.past_targets[:, 0] = self.target
         self.target[:] = np.clip(self.target + cfg.action_scale * a_m, self.soft_lo, self.soft_hi)
         kp = (cfg.kp * self.kp_s * self.strength)[:, None].repeat(12, 1)
         kd = (cfg.kd * self.kd_s * self.strength)[:, None].repeat(12, 1)
@@ -434,7 +442,11 @@ class TripodEnv:
         tm = self.tm
         last = None
         for s in range(cfg.decimation):
-            ctrl = np.where((self.latency <= s)[:, None], self.target, self.prev_target)
+            # the newest target issued at least `latency` physics steps ago
+            back = np.maximum(0, -((s - self.latency) // cfg.decimation))
+            ctrl = self.target.copy()
+            late = np.flatnonzero(back > 0)
+            ctrl[late] = self.past_targets[late, back[late] - 1]
             kp_s, kd_s = kp.copy(), kd.copy()
             t = self.lift_t + s * cfg.physics_dt
             act, jidx, qd, dqd, ph = self._lift_targets(t)

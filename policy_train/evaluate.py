@@ -25,7 +25,7 @@ from calib.atomic import write_text_atomic
 from calib.excitation import base_to_foot, covariance_kappa, foot_omega
 from calib.joints import MODEL_LEGS
 from deploy.lift_schedule import PHASES, LiftSchedule
-from policy_train.config import TrainConfig
+from policy_train.config import RANDOMISATIONS, DRConfig, TrainConfig
 from policy_train.env import PlanPool, TripodEnv
 
 __all__ = ["TARGETS", "evaluate_policy", "evaluation_env", "failure_cause", "foot_angular_velocity",
@@ -42,15 +42,22 @@ def foot_angular_velocity(q_leg: np.ndarray, dq_leg: np.ndarray, omega_base: np.
 
 
 def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = False,
-                   dr_off: tuple[str, ...] = ()) -> tuple[TripodEnv, np.ndarray]:
+                   dr_off: tuple[str, ...] = (), randomisation: str = "standard",
+                   ) -> tuple[TripodEnv, np.ndarray]:
     """The evaluation's environment for a policy's JSON: ``episodes`` per leg of ``legs``, each
     with the lift command at t = 0 and the JSON's schedule and plans, running to its end (no
-    terminations, no reference starts). Returns the env and each episode's model leg index."""
+    terminations, no reference starts), under the ``randomisation`` (of
+    :data:`config.RANDOMISATIONS`). Returns the env and each episode's model leg index."""
+    if randomisation not in RANDOMISATIONS:
+        raise ValueError(f"unknown randomisation {randomisation!r}; known: "
+                         f"{', '.join(RANDOMISATIONS)}")
     cfg = TrainConfig.from_dict(meta["train_config"]).env
     cfg.model_file = None
     cfg.plan_pool_file = None
     cfg.num_envs = episodes * len(legs)
     cfg.seed = seed
+    if randomisation == "standard":
+        cfg.dr = DRConfig()
     cfg.dr = cfg.dr.without(*dr_off)
     cfg.dr.enabled = not nominal
     # every episode starts on four legs and runs to its end: failures are counted, not ended
@@ -76,8 +83,9 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
 
 def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, write: bool = True,
                     results_path="docs/results/policy.md", log=print, nominal: bool = False,
-                    dr_off: tuple[str, ...] = ()) -> dict:
-    """Per-leg figures of the policy over ``episodes`` calibration motions per leg.
+                    dr_off: tuple[str, ...] = (), randomisation: str = "standard") -> dict:
+    """Per-leg figures of the policy over ``episodes`` calibration motions per leg, under the
+    ``randomisation`` (:data:`config.RANDOMISATIONS`; only ``standard`` is written).
 
     ``nominal``: no domain randomisation (nominal masses, gains, friction 0.8, no latency,
     pushes or observation noise: the deploy mock's situation); then ``write`` stores the
@@ -96,7 +104,8 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
         raise ValueError("dr_off needs the randomisation on (not nominal)")
     sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
     t0 = time.time()
-    env, leg_of = evaluation_env(meta, legs, episodes, seed, nominal=nominal, dr_off=dr_off)
+    env, leg_of = evaluation_env(meta, legs, episodes, seed, nominal=nominal, dr_off=dr_off,
+                                 randomisation=randomisation)
     sched = LiftSchedule.from_metadata(meta["lift_schedule"])
     N = env.N
     total = float(sched.total(legs[0]))
@@ -178,13 +187,15 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
         }
     result = {"policy": onnx_path.name, "episodes_per_leg": episodes, "seed": seed,
               "domain_randomisation": not nominal, "dr_off": list(dr_off),
+              "randomisation": randomisation,
               "armature_kg_m2": [float(x) for x in env.cfg.dr.armature],
               "motion_s": total, "t_r": sched.t_r, "periods": sched.periods,
               "wall_s": time.time() - t0, "legs": rows, "targets": TARGETS}
     table = format_table(result)
     log(table)
     log("\n" + format_failures(result))
-    write = write and not dr_off  # a diagnosis, not the policy's evaluation
+    # a diagnosis, not the policy's evaluation
+    write = write and not dr_off and randomisation == "standard"
     if write and nominal:
         meta["evaluation_nominal"] = result
         write_text_atomic(onnx_path.with_suffix(".json"), json.dumps(meta, indent=1) + "\n")
@@ -319,7 +330,8 @@ Policy `{r['policy']}` (commit `{meta.get('commit')}`, seed {meta.get('seed')},
 `a2i-train eval policies/{r['policy']} --episodes {r['episodes_per_leg']}` (seed {r['seed']}):
 the ONNX through onnxruntime, the JSON's observation terms, action and lift schedule.
 
-Each episode: domain randomisation as in training (masses, centre of mass, {_armature(r)},
+Each episode: the standard domain randomisation (`DRConfig`'s defaults, the same for
+every policy whatever ranges it trained on: masses, centre of mass, {_armature(r)},
 friction, kp/kd, motor strength, 0-20 ms latency, pushes, observation noise), the lift command at t = 0 and one
 full calibration motion: shift, lift, hold, the anti-noise excitation (t_r = {r['t_r']} s,
 {r['periods']} periods), lower; {r['motion_s']:.1f} s in all. Success = no fall, no contact but

@@ -42,6 +42,30 @@ def test_action_is_delta_target_in_sdk_order():
     np.testing.assert_array_equal(e.observations()["critic"][:, 33:45], e.actions)
 
 
+def test_actuation_latency_holds_the_targets_that_many_physics_steps():
+    """A target reaches the motors ``latency`` physics steps after the policy step that issued
+    it, also past one policy step (4 physics steps); the older targets fill the gap."""
+    cfg = EnvConfig(num_envs=3, plans_per_leg=1, seed=2, threads=1)
+    cfg.dr.latency_steps = (0, 6)
+    e = TripodEnv(cfg)
+    e.latency[:] = [0, 3, 6]
+    e.lift_leg[:] = -1
+    seen = []
+    step = e.batch.step
+    e.batch.step = lambda **kw: (seen.append(e.ctrl[:, 3].copy()), step(**kw))
+    old = e.target[:, 3].copy()
+    a = np.zeros((3, 12))
+    a[:, 0] = 1.0  # FR_hip (model index 3)
+    e.step(a)
+    new = e.target[:, 3].copy()
+    e.step(np.zeros((3, 12)))
+    seen = np.array(seen)  # (8 physics steps, 3 envs)
+    assert seen.shape == (8, 3) and np.all(new - old > 0.05)
+    for i, lat in enumerate([0, 3, 6]):
+        np.testing.assert_array_equal(seen[:lat, i], old[i])
+        np.testing.assert_array_equal(seen[lat:, i], new[i])
+
+
 def test_lifted_leg_follows_schedule():
     # zero actions let the body sag onto a thigh: keep that episode running here
     e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=4, threads=1,
@@ -141,6 +165,20 @@ def test_domain_randomisation_applied(env):
     np.testing.assert_array_equal(env.signals(False)["joint_pos"], model_to_sdk(env.q))
 
 
+def test_joint_friction_is_drawn_per_joint_only_when_on(env):
+    # off by default (v7's configuration): no friction, and the draws of older configs stand
+    assert np.all(env.batch.expanded("dof_frictionloss") == 0)
+    cfg = EnvConfig(num_envs=4, plans_per_leg=1, seed=1, threads=1)
+    cfg.dr.joint_friction = (0.1, 0.4)
+    on = TripodEnv(cfg)
+    fl = on.batch.expanded("dof_frictionloss").copy()
+    assert np.all(fl[:, :6] == 0)  # the free base has none
+    assert np.all((fl[:, 6:] >= 0.1) & (fl[:, 6:] <= 0.4)) and np.ptp(fl[0, 6:]) > 0.05
+    on.reset_idx(np.array([0]))
+    assert not np.array_equal(on.batch.expanded("dof_frictionloss")[0], fl[0])
+    np.testing.assert_array_equal(on.batch.expanded("dof_frictionloss")[1:], fl[1:])
+
+
 def test_fall_terminates():
     e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=5, threads=1))
     e.qpos[0, 2] = 0.08  # base dropped to the floor
@@ -215,9 +253,10 @@ def test_old_configs_keep_their_plan_clearance_and_armature():
     d = TrainConfig().to_dict()
     del d["env"]["ground_clearance"]
     del d["env"]["dr"]["armature"]
+    del d["env"]["dr"]["joint_friction"]
     old = TrainConfig.from_dict(d).env
     assert old.ground_clearance == ExcitationConfig.ground_clearance
-    assert old.dr.armature == (ARMATURE, ARMATURE)
+    assert old.dr.armature == (ARMATURE, ARMATURE) and old.dr.joint_friction == (0.0, 0.0)
     assert TrainConfig.from_dict(TrainConfig().to_dict()).env.ground_clearance == 0.12
 
 

@@ -164,6 +164,31 @@ def test_dr_off_evaluates_without_the_group_and_writes_nothing(exported, tmp_pat
     assert (d / "pol.json").read_text() == before
 
 
+def test_evaluation_draws_the_standard_ranges_unless_asked_for_the_training_ones(exported,
+                                                                                  tmp_path):
+    """A policy trained on wider ranges is evaluated on ``DRConfig``'s defaults, as every other
+    policy; ``randomisation="training"`` draws its own and writes nothing."""
+    d, _ = exported
+    from policy_train.config import DRConfig
+    from policy_train.evaluate import evaluate_policy, evaluation_env
+
+    meta = json.loads((d / "pol.json").read_text())
+    meta["train_config"]["env"]["dr"].update(latency_steps=[0, 6], joint_friction=[0.1, 0.4])
+    std, _ = evaluation_env(meta, ("FL",), 4, seed=1)
+    assert std.cfg.dr == DRConfig() and np.all(std.batch.expanded("dof_frictionloss") == 0)
+    own, _ = evaluation_env(meta, ("FL",), 4, seed=1, randomisation="training")
+    assert own.cfg.dr.latency_steps == (0, 6) and own.cfg.dr.joint_friction == (0.1, 0.4)
+    assert np.all(own.batch.expanded("dof_frictionloss")[:, 6:] >= 0.1)
+    with pytest.raises(ValueError, match="unknown randomisation"):
+        evaluation_env(meta, ("FL",), 1, seed=1, randomisation="wide")
+    before = (d / "pol.json").read_text()
+    out = tmp_path / "policy.md"
+    r = evaluate_policy(d / "pol.onnx", episodes=1, legs=("FL",), results_path=out,
+                        log=lambda s: None, randomisation="training")
+    assert r["randomisation"] == "training" and not out.exists()
+    assert (d / "pol.json").read_text() == before
+
+
 def test_table_shows_the_held_figures_and_reads_older_evaluations():
     from policy_train.evaluate import format_table
 
@@ -286,3 +311,38 @@ def test_resume_from_averaged_checkpoints(exported):
                           str(d / "bad")], capture_output=True, text=True, timeout=240, check=False)
     assert bad.returncode == 2 and "one run only" in bad.stderr
     assert len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_dr_settings_change_a_resumed_runs_randomisation(exported):
+    """``--dr FIELD=VALUE`` sets the run's ``DRConfig`` (on --resume, over the checkpoint's),
+    and the checkpoints it writes carry it."""
+    import torch
+
+    d, _ = exported
+    cmd = [sys.executable, "-m", "policy_train.cli", "tripod", "--resume",
+           str(d / "run" / "model_2.pt"), "--iterations", "1", "--num-envs", "8",
+           "--plans-per-leg", "1", "--steps-per-env", "8", "--run-dir", str(d / "wider"),
+           "--dr", "joint_friction=0,0.3", "--dr", "latency_steps=0,6", "--dr", "push_vel=0.5",
+           "--dr", "base_mass_add=-1,4"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    dr = torch.load(d / "wider" / "model_3.pt", weights_only=False,
+                    map_location="cpu")["train_config"]["env"]["dr"]
+    assert tuple(dr["joint_friction"]) == (0.0, 0.3) and tuple(dr["latency_steps"]) == (0, 6)
+    assert dr["push_vel"] == 0.5 and tuple(dr["base_mass_add"]) == (-1.0, 4.0)
+    before = torch.load(d / "run" / "model_2.pt", weights_only=False,
+                        map_location="cpu")["train_config"]["env"]["dr"]
+    assert tuple(dr["friction"]) == tuple(before["friction"])  # the rest is the run's own
+
+
+@pytest.mark.parametrize("setting", ["joint_friction", "nope=1", "joint_friction=0.4,0.1",
+                                     "latency_steps=0,1.5", "push_vel=-1", "friction=0.3",
+                                     "enabled=0"])
+def test_bad_dr_setting_exits_2_with_one_line(setting, capsys):
+    from policy_train.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["tripod", "--dr", setting, "--iterations", "1"])
+    assert exc.value.code == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(err) == 1 and "--dr" in err[0]
