@@ -9,7 +9,8 @@ step, the simulator the mock robot and Table I use), one calibration of one leg 
 with a :class:`Scenario`'s perturbations drawn afresh per episode:
 
 * ``nominal``: none;
-* ``training``: the training's randomisation rebuilt from :mod:`sim.effects` and
+* ``training``: the standard training randomisation (``DRConfig``'s defaults, v7's ranges;
+  a policy trained with ``a2i-train tripod --dr`` had others) rebuilt from :mod:`sim.effects` and
   :class:`policy_train.policy_motion.Disturbance` (base mass and centre of mass, foot friction,
   motor strength standing in for the kp / kd / strength scales, actuation latency, pushes,
   observation noise; the other links' masses and the armature are left nominal);
@@ -116,13 +117,13 @@ def _training_like(name: str, description: str, **changes) -> Scenario:
 
 SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
     Scenario("nominal", "no perturbation"),
-    _training_like("training", "the training's ranges: base -1..+2 kg, CoM +-3/2/2 cm, friction "
+    _training_like("training", "the standard training ranges: base -1..+2 kg, CoM +-3/2/2 cm, friction "
                    "0.4-1.25, motors x0.77-1.27, latency 0-20 ms, pushes 0.3 m/s, sensor noise"),
     _training_like("heavy", "training, base payload +3..+5 kg", base_mass_add=(3.0, 5.0)),
     _training_like("slippery", "training, friction 0.25-0.4", friction=(0.25, 0.4)),
     _training_like("late", "training, latency 20-40 ms", latency_s=(0.02, 0.04)),
     _training_like("weak", "training, motors x0.65-0.8", motor_strength=(0.65, 0.8)),
-    _training_like("joint_friction", "training, joint dry friction 0.2-0.6 N m (not trained)",
+    _training_like("joint_friction", "training, joint dry friction 0.2-0.6 N m (not in the standard ranges)",
                    joint_friction=(0.2, 0.6)),
     _training_like("shoves", "training, pushes 0.6 m/s", push_vel=0.6),
     _training_like("noisy", "training, twice the sensor noise", noise_scale=2.0),

@@ -264,15 +264,19 @@ def test_mirrored_legs_export_plays_the_other_side_mirrored(exported, tmp_path):
               "--mirror-legs", "XX"])
 
 
-@pytest.mark.parametrize("weights", ["1,2", "1,1,1,-1", "0,0,0,0", "a,b,c,d"])
-def test_bad_lift_leg_weights_exit_2_with_one_line(weights, capsys):
+@pytest.mark.parametrize(("option", "value", "hint"), [
+    *[("--lift-leg-weights", w, "FL,FR,RL,RR") for w in ("1,2", "1,1,1,-1", "0,0,0,0", "a,b,c,d")],
+    *[("--dr", v, "--dr") for v in ("joint_friction", "nope=1", "joint_friction=0.4,0.1",
+                                     "latency_steps=0,1.5", "push_vel=-1", "friction=0.3",
+                                     "enabled=0")]])
+def test_bad_tripod_option_exits_2_with_one_line(option, value, hint, capsys):
     from policy_train.cli import main
 
     with pytest.raises(SystemExit) as exc:
-        main(["tripod", "--lift-leg-weights", weights, "--iterations", "1"])
+        main(["tripod", option, value, "--iterations", "1"])
     assert exc.value.code == 2
     err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
-    assert len(err) == 1 and "FL,FR,RL,RR" in err[0]
+    assert len(err) == 1 and hint in err[0]
 
 
 def test_resume_from_averaged_checkpoints(exported):
@@ -334,15 +338,3 @@ def test_dr_settings_change_a_resumed_runs_randomisation(exported):
                         map_location="cpu")["train_config"]["env"]["dr"]
     assert tuple(dr["friction"]) == tuple(before["friction"])  # the rest is the run's own
 
-
-@pytest.mark.parametrize("setting", ["joint_friction", "nope=1", "joint_friction=0.4,0.1",
-                                     "latency_steps=0,1.5", "push_vel=-1", "friction=0.3",
-                                     "enabled=0"])
-def test_bad_dr_setting_exits_2_with_one_line(setting, capsys):
-    from policy_train.cli import main
-
-    with pytest.raises(SystemExit) as exc:
-        main(["tripod", "--dr", setting, "--iterations", "1"])
-    assert exc.value.code == 2
-    err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
-    assert len(err) == 1 and "--dr" in err[0]
