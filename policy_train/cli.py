@@ -11,6 +11,7 @@
   a2i-train transfer policies/NAME.onnx [--scenarios training,heavy,...] [--episodes 20]
                  [--legs FL,FR,RL,RR] [--out docs/results/policy_transfer.md]
                                    (the calibration re-run on sim.go2 under perturbations)
+  a2i-train compare A.json B.json  (two transfer runs on the same draws, episode by episode)
   a2i-train pack OUTDIR            (compiled model + plan pool for a machine without the URDF)
 
 Checkpoints go to ``runs/<run>/model_<it>.pt`` (``runs/`` is not committed).
@@ -116,6 +117,20 @@ def _transfer(a) -> int:
     if not a.no_write:
         write_results(res, a.out, a.onnx, a.seed, elapsed)
         print(f"wrote {a.out} and {Path(a.out).with_suffix('.json')}")
+    return 0
+
+
+def _compare(a) -> int:
+    from policy_train.transfer import compare, load_results, render_comparison
+
+    (meta_a, eps_a), (meta_b, eps_b) = (load_results(f) for f in a.episodes_files)
+    if meta_a["seed"] != meta_b["seed"]:
+        raise ValueError(f"the runs drew with different seeds ({meta_a['seed']} and "
+                         f"{meta_b['seed']}): their episodes are not the same draws")
+    names = [Path(m["policy"]).stem for m in (meta_a, meta_b)]
+    if names[0] == names[1]:
+        names = ["A", "B"]
+    print(render_comparison(compare(eps_a, eps_b), *names), end="")
     return 0
 
 
@@ -301,13 +316,17 @@ def main(argv: list[str] | None = None) -> int:
     x.add_argument("--no-write", action="store_true", help="print only")
     x.add_argument("--out", default="docs/results/policy_transfer.md",
                    help="markdown page; the episodes go beside it as .json")
+    c = sub.add_parser("compare", help="two transfer runs of the same seed, paired episode by "
+                                       "episode (which policy holds more of the same draws)")
+    c.add_argument("episodes_files", nargs=2, metavar="EPISODES_JSON",
+                   help="the .json a2i-train transfer writes beside its page")
     k = sub.add_parser("pack", help="compiled model + plan pool for a remote training machine")
     k.add_argument("outdir")
     k.add_argument("--plans-per-leg", type=int, default=8)
     k.add_argument("--seed", type=int, default=1)
     a = p.parse_args(argv)
     # Input files named on the command line must exist: say so in one line, exit 2.
-    for name in ("checkpoint", "onnx", "resume"):
+    for name in ("checkpoint", "onnx", "resume", "episodes_files"):
         paths = getattr(a, name, None)
         for path in [paths] if isinstance(paths, str) else paths or ():
             if not Path(path).is_file():
@@ -324,7 +343,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"{Path(a.onnx).with_suffix('.json')}: no policy metadata beside the ONNX file")
     try:
         return {"tripod": _tripod, "export": _export, "eval": _eval, "transfer": _transfer,
-                "pack": _pack}[a.cmd](a)
+                "compare": _compare, "pack": _pack}[a.cmd](a)
     except (OSError, ValueError) as e:
         print(f"a2i-train {a.cmd}: error: {str(e).splitlines()[0] if str(e) else e!r}",
               file=sys.stderr)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -42,8 +43,9 @@ from calib.excitation import covariance_kappa
 from calib.joints import LEGS, check_leg, model_indices
 from sim.effects import ActuationLatency, CoulombFriction, FootFriction, LinkMass, MotorStrength
 
-__all__ = ["SCENARIOS", "EpisodeResult", "Scenario", "render_markdown", "run_episode",
-           "run_transfer", "summarise", "timed_run", "write_results"]
+__all__ = ["SCENARIOS", "EpisodeResult", "PairedScenario", "Scenario", "compare",
+           "load_results", "render_comparison", "render_markdown", "run_episode", "run_transfer",
+           "summarise", "timed_run", "write_results"]
 
 BASE_MASS_KG = 7.277
 """Mass of the base body of :mod:`sim.go2`'s model, kg (a payload of m kg scales it by
@@ -313,3 +315,75 @@ def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None,
 
     res = run_transfer(onnx_path, scenarios, legs, episodes, seed, workers, periods, progress)
     return res, time.time() - t0
+
+
+def load_results(path) -> tuple[dict, list[EpisodeResult]]:
+    """The episodes file :func:`write_results` wrote: ({"policy", "seed", "elapsed_s"}, episodes)."""
+    from pathlib import Path
+
+    try:
+        d = json.loads(Path(path).read_text())
+        eps = [EpisodeResult(**e) for e in d["episodes"]]
+        meta = {k: d[k] for k in ("policy", "seed", "elapsed_s")}
+    except (KeyError, TypeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a transfer episodes file ({e})") from None
+    return meta, eps
+
+
+@dataclass(frozen=True)
+class PairedScenario:
+    """Two policies on the same draws of one scenario. pairs: episodes both ran; both / only_a
+    / only_b / neither: how many of them each held; p: the exact two-sided sign test (McNemar)
+    of only_a against only_b, the chance of a split at least this uneven if the two were
+    equally good."""
+
+    scenario: str
+    pairs: int
+    both: int
+    only_a: int
+    only_b: int
+    neither: int
+
+    @property
+    def success_a(self) -> float:
+        return (self.both + self.only_a) / self.pairs
+
+    @property
+    def success_b(self) -> float:
+        return (self.both + self.only_b) / self.pairs
+
+    @property
+    def p(self) -> float:
+        n, k = self.only_a + self.only_b, min(self.only_a, self.only_b)
+        return min(1.0, 2 * sum(math.comb(n, i) for i in range(k + 1)) / 2 ** n) if n else 1.0
+
+
+def compare(a: list[EpisodeResult], b: list[EpisodeResult]) -> list[PairedScenario]:
+    """Pair two transfer runs episode by episode (scenario, leg, episode index: the same draws
+    when both ran with the same seed), per scenario in ``a``'s order and then over all
+    (scenario "all"). Raises ValueError if they share no episode."""
+    held_b = {(r.scenario, r.leg, r.episode): r.success for r in b}
+    pairs = [(r.scenario, r.success, held_b[k]) for r in a
+             if (k := (r.scenario, r.leg, r.episode)) in held_b]
+    if not pairs:
+        raise ValueError("the two runs share no episode (scenario, leg, episode)")
+
+    def tally(name, rows):
+        n = [sum(1 for _, x, y in rows if (x, y) == c)
+             for c in ((True, True), (True, False), (False, True), (False, False))]
+        return PairedScenario(name, len(rows), *n)
+
+    out = [tally(s, [p for p in pairs if p[0] == s]) for s in dict.fromkeys(p[0] for p in pairs)]
+    return out + [tally("all", pairs)]
+
+
+def render_comparison(rows: list[PairedScenario], name_a: str, name_b: str) -> str:
+    """The table ``a2i-train compare`` prints (markdown)."""
+    head = (f"| scenario | pairs | {name_a} | {name_b} | held by both / only {name_a} / only "
+            f"{name_b} / neither | sign test p |")
+    lines = [head, "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r.scenario} | {r.pairs} | {100 * r.success_a:.0f} % | "
+                     f"{100 * r.success_b:.0f} % | {r.both} / {r.only_a} / {r.only_b} / "
+                     f"{r.neither} | {r.p:.2g} |")
+    return "\n".join(lines) + "\n"

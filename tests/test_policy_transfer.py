@@ -1,6 +1,6 @@
 """Transfer check (policy_train.transfer): scenarios draw the effects and disturbances they name,
 the disturbance reaches the policy's observation and the base, an episode on sim.go2 is scored
-as the evaluation scores, and the CLI writes its page."""
+as the evaluation scores, the CLI writes its page, and two runs compare episode by episode."""
 
 from __future__ import annotations
 
@@ -20,9 +20,11 @@ from policy_train.transfer import (
     BASE_MASS_KG,
     SCENARIOS,
     EpisodeResult,
+    compare,
     render_markdown,
     run_episode,
     summarise,
+    write_results,
 )
 from sim.effects import ActuationLatency, CoulombFriction, FootFriction, LinkMass, MotorStrength
 from sim.free_base_run import free_base_sim
@@ -152,3 +154,44 @@ def test_cli_bad_input_is_one_line_exit_2(argv, message, capsys):
     assert e.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert message in err[-1]
+
+
+def _run(outcomes: dict[str, list[bool]], leg: str = "FL") -> list[EpisodeResult]:
+    return [EpisodeResult(s, leg, e, ok, [] if ok else ["fall"])
+            for s, oks in outcomes.items() for e, ok in enumerate(oks)]
+
+
+def test_compare_pairs_the_same_draws():
+    a = _run({"training": [True] * 8 + [False, False], "weak": [True, False, True, False]})
+    # b ran 3 episodes of "weak" (the 4th of a has no partner) and an extra scenario
+    b = _run({"training": [False] * 8 + [True, False], "weak": [True, True, False],
+              "late": [True]})
+    rows = {r.scenario: r for r in compare(a, b)}
+    assert list(rows) == ["training", "weak", "all"]
+    t = rows["training"]
+    assert (t.pairs, t.both, t.only_a, t.only_b, t.neither) == (10, 0, 8, 1, 1)
+    assert t.success_a == 0.8 and t.success_b == 0.1
+    assert t.p == pytest.approx(2 * (1 + 9) / 2 ** 9)  # exact sign test, 8 against 1
+    w = rows["weak"]
+    assert (w.pairs, w.both, w.only_a, w.only_b, w.neither) == (3, 1, 1, 1, 0) and w.p == 1.0
+    assert rows["all"].pairs == 13 and rows["all"].only_a == 9
+    with pytest.raises(ValueError, match="share no episode"):
+        compare(a, _run({"late": [True]}))
+
+
+def test_cli_compare(tmp_path, capsys):
+    a = _run({"training": [True, True, False]}, "RR")
+    write_results(a, tmp_path / "a.md", "policies/x_v1.onnx", 1)
+    write_results(_run({"training": [False, True, False]}, "RR"), tmp_path / "b.md",
+                  "policies/x_v2.onnx", 1)
+    assert main(["compare", str(tmp_path / "a.json"), str(tmp_path / "b.json")]) == 0
+    out = capsys.readouterr().out
+    assert "| scenario | pairs | x_v1 | x_v2 |" in out
+    assert "| training | 3 | 67 % | 33 % | 1 / 1 / 0 / 1 | 1 |" in out
+    write_results(a, tmp_path / "c.md", "policies/x_v3.onnx", 2)
+    (tmp_path / "d.json").write_text("{}")
+    for other, message in (("c.json", "different seeds (1 and 2)"),
+                           ("d.json", "not a transfer episodes file")):
+        assert main(["compare", str(tmp_path / "a.json"), str(tmp_path / other)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and message in err[0]
