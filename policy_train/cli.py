@@ -1,7 +1,8 @@
 """``a2i-train``: train, export and evaluate the tripod calibration-action policy.
 
   a2i-train tripod [--iterations N] [--seed S] [--num-envs N] [--resume CKPT [CKPT ...]
-                   [--new-rewards]]
+                   | --from-policy policies/NAME.onnx [--init-std S] [--critic-warmup N]]
+                   [--new-rewards]
                    [--lift-leg-weights FL,FR,RL,RR] [--[no-]mirror-augmentation] [--run-dir D]
                    [--dr FIELD=VALUE ...] [--export policies/NAME]
   a2i-train export CHECKPOINT [CHECKPOINT ...] --out policies/NAME [--legs RL,RR]
@@ -47,20 +48,31 @@ def _tripod(a) -> int:
 
             start = average_checkpoints(ckpts)
         cfg = TrainConfig.from_dict(start["train_config"])
-        if a.new_rewards:  # continue the weights under this code's rewards and episodes
-            fresh = EnvConfig()
-            cfg.env.rewards = RewardConfig()
-            cfg.env.dr = DRConfig()
-            for k in ("terminate_on_contact", "p_reference_start", "reference_margin_m",
-                      "reference_joint_noise", "p_reference_shift", "lift_leg_weights",
-                      "ground_clearance", "train_periods"):
-                setattr(cfg.env, k, getattr(fresh, k))
+    elif a.from_policy:
+        from policy_train.warm_start import policy_start
+
+        start = policy_start(a.from_policy)
+        cfg = TrainConfig.from_dict(start["train_config"])
+        # the compiled model and plan pool it trained from were scratch files of that machine
+        # (the pool is rebuilt from the policy's seed below, unless --plan-pool names one)
+        cfg.env.model_file = cfg.env.plan_pool_file = None
+    if (a.resume or a.from_policy) and a.new_rewards:
+        # continue the weights under this code's rewards and episodes
+        fresh = EnvConfig()
+        cfg.env.rewards = RewardConfig()
+        cfg.env.dr = DRConfig()
+        for k in ("terminate_on_contact", "calf_margin_m", "p_reference_start",
+                  "reference_margin_m", "reference_joint_noise", "p_reference_shift",
+                  "lift_leg_weights", "ground_clearance", "train_periods"):
+            setattr(cfg.env, k, getattr(fresh, k))
     overrides = {"num_envs": (cfg.env, "num_envs"), "plans_per_leg": (cfg.env, "plans_per_leg"),
                  "save_interval": (cfg.ppo, "save_interval"),
                  "model_file": (cfg.env, "model_file"), "plan_pool": (cfg.env, "plan_pool_file"),
                  "steps_per_env": (cfg.ppo, "num_steps_per_env"),
                  "entropy_coef": (cfg.ppo, "entropy_coef"),
-                 "lift_leg_weights": (cfg.env, "lift_leg_weights")}
+                 "lift_leg_weights": (cfg.env, "lift_leg_weights"),
+                 "calf_margin": (cfg.env, "calf_margin_m"), "threads": (cfg.env, "threads"),
+                 "learning_rate": (cfg.ppo, "learning_rate")}
     for arg, (section, field) in overrides.items():
         if getattr(a, arg) is not None:
             setattr(section, field, getattr(a, arg))
@@ -70,30 +82,46 @@ def _tripod(a) -> int:
         setattr(cfg.env.dr, field, value)
     run_dir = Path(a.run_dir or f"runs/tripod_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
     t0 = time.time()
+    if a.from_policy and cfg.env.plan_pool_file is None:
+        from policy_train.warm_start import policy_plan_pool
+
+        cfg.env.plan_pool_file = str(policy_plan_pool(cfg.env, start["seed"],
+                                                      run_dir / "pool.npz"))
     tr = Trainer(cfg, run_dir, seed=a.seed, log=lambda s: print(s, flush=True))
     if a.resume:
         tr.load(start)
         print(f"resumed from {' '.join(a.resume)} at iteration {tr.iteration}"
               + (" (actor weights averaged)" if len(a.resume) > 1 else ""), flush=True)
+    elif a.from_policy:
+        tr.load_policy(start, a.init_std)
+        print(f"started from the policy {a.from_policy} (iteration {tr.iteration}): its actor, "
+              f"exploration std {a.init_std}, a new critic trained alone for "
+              f"{a.critic_warmup} iterations first", flush=True)
+    if a.learning_rate is not None:  # over the rate a checkpoint's schedule had reached
+        tr.set_learning_rate(a.learning_rate)
     tr.total_iterations = a.total_iterations or (tr.iteration + a.iterations)
     print(f"tripod: {cfg.env.num_envs} envs, run dir {run_dir}, setup {time.time() - t0:.1f} s",
           flush=True)
-    tr.learn(a.iterations, max_seconds=None if a.max_minutes is None else 60 * a.max_minutes)
+    deadline = None if a.max_minutes is None else time.time() + 60 * a.max_minutes
+    if a.from_policy and a.critic_warmup:
+        tr.learn(a.critic_warmup, max_seconds=None if deadline is None else deadline - time.time(),
+                 critic_only=True)
+    tr.learn(a.iterations, max_seconds=None if deadline is None else deadline - time.time())
     ckpt = run_dir / f"model_{tr.iteration}.pt"
     print(f"saved {ckpt}", flush=True)
     if a.export:
-        from policy_train.export import export_policy
+        from policy_train.export import export_policy, train_state_path
 
         onnx_path, json_path = export_policy(ckpt, a.export)
-        print(f"exported {onnx_path} and {json_path}", flush=True)
+        print(f"exported {onnx_path}, {json_path} and {train_state_path(onnx_path)}", flush=True)
     return 0
 
 
 def _export(a) -> int:
-    from policy_train.export import export_policy
+    from policy_train.export import export_policy, train_state_path
 
     onnx_path, json_path = export_policy(a.checkpoint, a.out, a.legs, a.mirror_legs)
-    print(f"exported {onnx_path} and {json_path}")
+    print(f"exported {onnx_path}, {json_path} and {train_state_path(onnx_path)}")
     return 0
 
 
@@ -145,14 +173,31 @@ def _scenario_list(text: str) -> tuple[str, ...]:
     return names
 
 
-def _positive(text: str) -> int:
+def _positive(text: str, least: int = 1) -> int:
     try:
         v = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {v}")
+    if v < least:
+        raise argparse.ArgumentTypeError(f"must be >= {least}, got {v}")
     return v
+
+
+def _count(text: str) -> int:
+    return _positive(text, 0)
+
+
+def _number(lo: float, hi: float, what: str):
+    """argparse type: a float in [lo, hi) (hi may be inf)."""
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not lo <= v < hi:
+            raise argparse.ArgumentTypeError(f"{what}, got {v}")
+        return v
+    return parse
 
 
 def _pack(a) -> int:
@@ -261,16 +306,37 @@ def main(argv: list[str] | None = None) -> int:
                    metavar="FIELD=VALUE", help="domain randomisation setting (repeatable), "
                    "e.g. --dr motor_strength=0.75,1.1 --dr latency_steps=0,6; on --resume it "
                    "changes the run's own")
+    t.add_argument("--calf-margin", type=_number(0.0, 0.05, "must be in [0, 0.05) m"), default=None,
+                   metavar="M",
+                   help="also end an episode when a stance calf comes within M m of the floor "
+                        "while a leg is lifted (default 0: only on contact)")
+    t.add_argument("--learning-rate", type=_number(1e-7, 1.0, "must be in [1e-7, 1)"),
+                   default=None, metavar="LR",
+                   help="PPO's (starting) learning rate; the adaptive schedule moves it to keep "
+                        "the KL near its target. On --resume it replaces the checkpoint's")
+    t.add_argument("--threads", type=_positive, default=None,
+                   help="threads of the simulation and of the update (default: all CPUs); "
+                        "1 each for two runs side by side on two cores")
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this")
     t.add_argument("--model-file", default=None, help="compiled training model (.mjb)")
     t.add_argument("--plan-pool", default=None, help="precomputed excitation plan pool (.npz)")
     t.add_argument("--resume", nargs="+", default=None, metavar="CKPT",
-                   help="checkpoint to continue from; several of one run: from the newest with "
-                        "the mean of their actor weights (as export averages)")
+                   help="checkpoint to continue from (runs/<run>/model_<it>.pt, or an exported "
+                        "policy's policies/<name>.train.pt); several of one run: from the newest "
+                        "with the mean of their actor weights (as export averages)")
+    t.add_argument("--from-policy", default=None, metavar="ONNX",
+                   help="continue from an exported policy without a training state (its "
+                        ".json beside it, no .train.pt): its actor and configuration, a new "
+                        "critic")
+    t.add_argument("--init-std", type=_number(1e-3, 10.0, "must be in [0.001, 10)"), default=0.3,
+                   help="with --from-policy: exploration std of every action (default 0.3)")
+    t.add_argument("--critic-warmup", type=_count, default=100,
+                   help="with --from-policy: iterations that train the new critic alone, the "
+                        "actor frozen, before PPO proper (default 100)")
     t.add_argument("--new-rewards", action="store_true",
-                   help="with --resume: use the current reward weights, episode settings (contact "
-                        "terminations, reference starts, ...) and domain randomisation, not the "
-                        "checkpoint's")
+                   help="with --resume or --from-policy: use the current reward weights, "
+                        "episode settings (contact terminations, reference starts, ...) and "
+                        "domain randomisation, not the checkpoint's")
     t.add_argument("--mirror-augmentation", action=argparse.BooleanOptionalAction, default=None,
                    help="train on the left-right mirrored samples too (default: on for new runs, "
                         "the checkpoint's setting with --resume; before v5 it was off). Off "
@@ -326,7 +392,11 @@ def main(argv: list[str] | None = None) -> int:
     k.add_argument("--seed", type=int, default=1)
     a = p.parse_args(argv)
     # Input files named on the command line must exist: say so in one line, exit 2.
-    for name in ("checkpoint", "onnx", "resume", "episodes_files"):
+    if a.cmd == "tripod" and a.resume and a.from_policy:
+        p.error("--resume and --from-policy exclude each other: start from one")
+    if a.cmd == "tripod" and a.from_policy and not Path(a.from_policy).with_suffix(".json").is_file():
+        p.error(f"{Path(a.from_policy).with_suffix('.json')}: no policy metadata beside the ONNX file")
+    for name in ("checkpoint", "onnx", "resume", "episodes_files", "from_policy"):
         paths = getattr(a, name, None)
         for path in [paths] if isinstance(paths, str) else paths or ():
             if not Path(path).is_file():

@@ -166,6 +166,10 @@ class EnvConfig:
     # the evaluation's failure conditions also end the episode: a thigh, calf or body on the
     # ground, or the lifted foot down during hold / excitation
     terminate_on_contact: bool = True
+    # with terminate_on_contact, a stance calf whose collision hull comes within this many m
+    # of the floor while a leg is lifted also ends the episode (0: off): most evaluation
+    # failures are a stance calf grazing the floor, so training keeps a margin above it
+    calf_margin_m: float = 0.0
     # reference-state initialisation (policy_train.tripod_pose): this share of the resets
     # starts in a level, statically balanced tripod, in the schedule's hold phase
     p_reference_start: float = 0.3

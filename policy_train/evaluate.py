@@ -364,7 +364,8 @@ def _curve(meta: dict) -> str:
     rows = []
     for h in meta.get("training_history", [])[::5]:
         er, el = h.get("mean_episode_reward"), h.get("mean_episode_length_s")
-        rows.append(f"| {h['iteration']} | {h['stage']} | {h['mean_step_reward']:+.4f} | "
+        sr = h.get("mean_step_reward")
+        rows.append(f"| {h['iteration']} | {h['stage']} | {'-' if sr is None else f'{sr:+.4f}'} | "
                     f"{'-' if er is None else f'{er:+.1f}'} | {'-' if el is None else f'{el:.1f}'} |")
     return "\n".join(rows)
 

@@ -23,7 +23,8 @@ from deploy.lift_schedule import LiftSchedule
 from deploy.observation import OBS_SIZE
 from policy_train.config import TrainConfig
 
-__all__ = ["average_checkpoints", "build_metadata", "export_policy", "git_commit"]
+__all__ = ["average_checkpoints", "build_metadata", "export_policy", "git_commit",
+           "train_state_path"]
 
 EVAL_T_R = 0.5       # s, the deploy schedule's excitation (calib defaults)
 EVAL_PERIODS = 4
@@ -138,7 +139,8 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
 
 def export_policy(checkpoint, out_stem: str | Path,
                   legs=None, mirror_legs=None) -> tuple[Path, Path]:
-    """Write ``<out_stem>.onnx`` and ``<out_stem>.json`` from a training checkpoint, or from
+    """Write ``<out_stem>.onnx``, ``<out_stem>.json`` and the training state
+    ``<out_stem>.train.pt`` (:func:`train_state_path`) from a training checkpoint, or from
     the weight average of several of one run (a list: :func:`average_checkpoints`; the JSON's
     ``averaged_iterations``); legs: the JSON's ``legs`` (the legs deploy may lift with it;
     None: all four). mirror_legs: legs whose lifts the graph plays as the mirror image of the
@@ -187,10 +189,26 @@ def export_policy(checkpoint, out_stem: str | Path,
         if y.shape != (n, 12) or not np.allclose(y, ref, atol=1e-4, rtol=1e-4):
             raise RuntimeError(f"onnxruntime disagrees with torch (batch {n}): "
                                f"max err {np.abs(y - ref).max():.2e}")
+    # every 10th iteration; the curve of a policy this run started from is thinned already
+    hist = d.get("history", [])
+    kept = [h for h in hist if h.get("from_policy")] + [
+        h for h in hist if not h.get("from_policy")][::10]
     meta["training_history"] = [
-        {k: h[k] for k in ("iteration", "mean_step_reward", "mean_episode_reward",
-                           "mean_episode_length_s", "stage")}
-        for h in d.get("history", [])[::10]]
+        {k: h.get(k) for k in ("iteration", "mean_step_reward", "mean_episode_reward",
+                               "mean_episode_length_s", "stage")} for h in kept]
+    # the whole training state (the actor as exported, the newest checkpoint's critic,
+    # optimiser and exploration std): runs/ does not outlive its machine, and a continuation
+    # from the ONNX alone (--from-policy) must rebuild all of that (docs/policy-training.md)
+    state = io.BytesIO()
+    torch.save({**d, "exported_as": name}, state)
     write_bytes_atomic(onnx_path, data)
     write_text_atomic(json_path, json.dumps(meta, indent=1) + "\n")
+    write_bytes_atomic(train_state_path(onnx_path), state.getvalue())
     return onnx_path, json_path
+
+
+def train_state_path(onnx_path: str | Path) -> Path:
+    """``<name>.train.pt`` beside ``<name>.onnx``: the checkpoint ``a2i-train tripod --resume``
+    continues the exported policy from."""
+    p = Path(onnx_path)
+    return p.with_name(p.name.removesuffix(".onnx") + ".train.pt")

@@ -101,7 +101,8 @@ class Trainer:
         cfg.env.seed = seed
         torch.manual_seed(seed)
         np.random.seed(seed)
-        torch.set_num_threads(max(1, os.cpu_count() or 1))
+        # the update's threads, as many as the simulation's (EnvConfig.threads, 0: all CPUs)
+        torch.set_num_threads(cfg.env.threads or max(1, os.cpu_count() or 1))
         self.run_dir = Path(run_dir)
         self.log = log
         self.env = TripodEnv(cfg.env)
@@ -114,15 +115,22 @@ class Trainer:
         self.history: list[dict] = []
         self.total_iterations = 0
         self.resumed_from_average: list[int] | None = None  # iterations whose mean it started from
+        self.warm_start: dict | None = None  # the exported policy it started from, if any
 
     def save(self, path: Path) -> None:
         d = self.alg.save()
+        groups = d["optimizer_state_dict"]["param_groups"]
+        if len(groups) > 1:  # during a critic warm-up: saved as the one group PPO builds
+            one = {**groups[-1], "params": [i for g in groups for i in g["params"]]}
+            d["optimizer_state_dict"] = {**d["optimizer_state_dict"], "param_groups": [one]}
         d["iter"] = self.iteration
         d["train_config"] = self.cfg.to_dict()
         d["seed"] = self.seed
         d["history"] = self.history
         if self.resumed_from_average:
             d["resumed_from_average"] = self.resumed_from_average
+        if self.warm_start:
+            d["warm_start"] = self.warm_start
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp")
         torch.save(d, tmp)
@@ -137,8 +145,71 @@ class Trainer:
         self.history = list(d.get("history", []))
         # a start from averaged weights is part of how later checkpoints came about
         self.resumed_from_average = d.get("averaged_iterations", d.get("resumed_from_average"))
+        self.warm_start = d.get("warm_start")
 
-    def learn(self, iterations: int, max_seconds: float | None = None) -> None:
+    def set_learning_rate(self, lr: float) -> None:
+        """PPO's learning rate from now on (the adaptive schedule moves it from there)."""
+        self.alg.learning_rate = float(lr)
+        for group in self.alg.optimizer.param_groups:
+            group["lr"] = float(lr)
+
+    def load_policy(self, start: dict, std: float) -> None:
+        """Start from an exported policy (:func:`policy_train.warm_start.policy_start`): its
+        actor weights exactly, every action's exploration std set to ``std`` (the export keeps
+        only the mean), a fresh critic and optimiser (train it first: ``learn(...,
+        critic_only=True)``), the policy's iteration and stage."""
+        if not (np.isfinite(std) and std > 0):
+            raise ValueError(f"the exploration std must be > 0, got {std}")
+        actor = self.alg.get_policy()
+        try:
+            actor.mlp.load_state_dict(start["actor_mlp"])
+        except RuntimeError as e:  # layer names or shapes other than the configuration's
+            raise ValueError(f"the policy's weights do not fit its configuration's actor: "
+                             f"{str(e).splitlines()[0]}") from e
+        with torch.no_grad():
+            dist = actor.distribution
+            if hasattr(dist, "std_param"):
+                dist.std_param.fill_(std)
+            else:
+                dist.log_std_param.fill_(float(np.log(std)))
+        self.iteration = int(start["iter"])
+        self.history = list(start["history"])
+        self.warm_start = {**start["warm_start"], "std": float(std)}
+
+    def learn(self, iterations: int, max_seconds: float | None = None,
+              critic_only: bool = False) -> None:
+        """Run PPO iterations (a progress line each, checkpoints every ``save_interval``).
+
+        critic_only: the warm-up after :meth:`load_policy`. Only the critic moves: the actor's
+        parameters (mean and std) sit in their own optimiser group at learning rate 0, so
+        Adam still gathers their gradient moments, and the rate is fixed (the unmoved actor's
+        KL of 0 would raise it). Without the moments PPO's first updates move every weight a
+        full step at once (Adam's first steps are sign steps): from v7, FL's success fell from
+        78 to 42 % in 50 iterations (docs/policy-training.md)."""
+        if not critic_only:
+            self._learn(iterations, max_seconds, False)
+            return
+        alg = self.alg
+        actor, critic = alg.get_policy(), alg.critic
+        old = alg.optimizer
+        schedule, lr = alg.schedule, alg.learning_rate
+        alg.optimizer = type(old)([{"params": list(actor.parameters()), "lr": 0.0},
+                                   {"params": list(critic.parameters()), "lr": lr}], lr=lr)
+        alg.optimizer.state.update(old.state)
+        alg.schedule = "fixed"
+        try:
+            self._learn(iterations, max_seconds, True)
+        finally:
+            # one group again, as rsl-rl builds it (checkpoints must load into a fresh PPO),
+            # keeping the moments gathered
+            warm = alg.optimizer
+            alg.optimizer = type(old)(
+                [{"params": list(actor.parameters()) + list(critic.parameters()), "lr": lr}],
+                lr=lr)
+            alg.optimizer.state.update(warm.state)
+            alg.schedule, alg.learning_rate = schedule, lr
+
+    def _learn(self, iterations: int, max_seconds: float | None, critic_only: bool) -> None:
         ppo = self.cfg.ppo
         start = self.iteration
         if self.total_iterations <= start:  # not planned by the caller: this call's end
@@ -189,13 +260,17 @@ class Trainer:
                 "steps_per_s": steps / (t1 - t0), "collect_s": t1 - t0, "learn_s": t2 - t1,
                 "value_loss": float(losses.get("value", losses.get("value_function", 0.0))),
                 "std": float(self.alg.get_policy().output_std.detach().mean()),
+                "learning_rate": float(self.alg.learning_rate),
                 "stage": 1 if it < stage1_end else 2,
             }
+            if critic_only:
+                rec["critic_only"] = True
             self.history.append(rec)
             er = rec["mean_episode_reward"]
             el = rec["mean_episode_length_s"]
             self.log(
-                f"it {self.iteration:5d}  stage {rec['stage']}  step_rew {rec['mean_step_reward']:+.4f}"
+                f"it {self.iteration:5d}  stage {rec['stage']}{' critic' if critic_only else ''}"
+                f"  step_rew {rec['mean_step_reward']:+.4f}"
                 f"  ep_rew {'   -   ' if er is None else f'{er:+8.2f}'}"
                 f"  ep_len {'  -  ' if el is None else f'{el:5.1f}'} s  falls {falls:4d}/"
                 f"{len(finished_r):<4d}  std {rec['std']:.3f}  {rec['steps_per_s']:7.0f} steps/s"

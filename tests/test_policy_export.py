@@ -268,7 +268,10 @@ def test_mirrored_legs_export_plays_the_other_side_mirrored(exported, tmp_path):
     *[("--lift-leg-weights", w, "FL,FR,RL,RR") for w in ("1,2", "1,1,1,-1", "0,0,0,0", "a,b,c,d")],
     *[("--dr", v, "--dr") for v in ("joint_friction", "nope=1", "joint_friction=0.4,0.1",
                                      "latency_steps=0,1.5", "push_vel=-1", "friction=0.3",
-                                     "enabled=0")]])
+                                     "enabled=0")],
+    ("--calf-margin", "-0.001", "--calf-margin"), ("--calf-margin", "0.2", "--calf-margin"),
+    ("--threads", "0", "--threads"), ("--critic-warmup", "-1", "--critic-warmup"),
+    ("--init-std", "0", "--init-std"), ("--learning-rate", "0", "--learning-rate")])
 def test_bad_tripod_option_exits_2_with_one_line(option, value, hint, capsys):
     from policy_train.cli import main
 
@@ -327,14 +330,116 @@ def test_dr_settings_change_a_resumed_runs_randomisation(exported):
            str(d / "run" / "model_2.pt"), "--iterations", "1", "--num-envs", "8",
            "--plans-per-leg", "1", "--steps-per-env", "8", "--run-dir", str(d / "wider"),
            "--dr", "joint_friction=0,0.3", "--dr", "latency_steps=0,6", "--dr", "push_vel=0.5",
-           "--dr", "base_mass_add=-1,4"]
+           "--dr", "base_mass_add=-1,4", "--calf-margin", "0.003", "--threads", "1",
+           "--learning-rate", "2e-5"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
-    dr = torch.load(d / "wider" / "model_3.pt", weights_only=False,
-                    map_location="cpu")["train_config"]["env"]["dr"]
+    env = torch.load(d / "wider" / "model_3.pt", weights_only=False,
+                     map_location="cpu")["train_config"]["env"]
+    assert env["calf_margin_m"] == 0.003 and env["threads"] == 1
+    ckpt = torch.load(d / "wider" / "model_3.pt", weights_only=False, map_location="cpu")
+    assert ckpt["train_config"]["ppo"]["learning_rate"] == 2e-5
+    # the adaptive schedule moves the rate by 1.5x per mini-batch from where it was set
+    lr = ckpt["history"][-1]["learning_rate"]
+    assert 2e-5 / 1.5 ** 20 <= lr <= 2e-5 * 1.5 ** 20
+    dr = env["dr"]
     assert tuple(dr["joint_friction"]) == (0.0, 0.3) and tuple(dr["latency_steps"]) == (0, 6)
     assert dr["push_vel"] == 0.5 and tuple(dr["base_mass_add"]) == (-1.0, 4.0)
     before = torch.load(d / "run" / "model_2.pt", weights_only=False,
                         map_location="cpu")["train_config"]["env"]["dr"]
     assert tuple(dr["friction"]) == tuple(before["friction"])  # the rest is the run's own
 
+
+
+def test_export_writes_the_training_state_that_resume_continues(exported, tmp_path):
+    """``<name>.train.pt`` beside the ONNX: the averaged actor as exported, the newest
+    checkpoint's critic and optimiser; ``--resume`` continues the exported policy from it."""
+    import torch
+
+    from policy_train.cli import main
+
+    d, _ = exported
+    ckpts = [str(d / "run" / f"model_{i}.pt") for i in (1, 2)]
+    assert main(["export", *ckpts, "--out", str(tmp_path / "avg")]) == 0
+    state = torch.load(tmp_path / "avg.train.pt", weights_only=False, map_location="cpu")
+    newest = torch.load(ckpts[1], weights_only=False, map_location="cpu")
+    assert state["iter"] == 2 and state["averaged_iterations"] == [1, 2]
+    assert state["exported_as"] == "avg"
+    for k, v in newest["critic_state_dict"].items():
+        assert torch.equal(state["critic_state_dict"][k], v), k
+    w = torch.load(ckpts[0], weights_only=False, map_location="cpu")["actor_state_dict"]
+    assert torch.allclose(state["actor_state_dict"]["mlp.0.weight"],
+                          (w["mlp.0.weight"] + newest["actor_state_dict"]["mlp.0.weight"]) / 2)
+    p = subprocess.run([sys.executable, "-m", "policy_train.cli", "tripod", "--resume",
+                        str(tmp_path / "avg.train.pt"), "--iterations", "1", "--num-envs", "8",
+                        "--plans-per-leg", "1", "--steps-per-env", "8", "--run-dir",
+                        str(tmp_path / "more")], capture_output=True, text=True, timeout=240,
+                       check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    out = torch.load(tmp_path / "more" / "model_3.pt", weights_only=False, map_location="cpu")
+    assert out["resumed_from_average"] == [1, 2]
+
+
+def test_from_policy_continues_an_exported_policy(exported, tmp_path):
+    """``--from-policy X.onnx``: the committed files are enough to continue training. The
+    actor starts as the exported weights exactly (the mirrored graph's too), the critic
+    alone learns for ``--critic-warmup`` iterations, then PPO moves the actor; a policy in
+    phase 2 stays there; the checkpoints name the policy they started from."""
+    import torch
+
+    from policy_train.cli import main
+
+    d, _ = exported
+    src = torch.load(d / "run" / "model_2.pt", weights_only=False, map_location="cpu")
+    assert main(["export", str(d / "run" / "model_2.pt"), "--out", str(tmp_path / "m"),
+                 "--mirror-legs", "FR"]) == 0
+    cmd = [sys.executable, "-m", "policy_train.cli", "tripod", "--from-policy",
+           str(tmp_path / "m.onnx"), "--init-std", "0.3", "--critic-warmup", "2",
+           "--iterations", "1", "--num-envs", "8", "--plans-per-leg", "1", "--steps-per-env",
+           "8", "--save-interval", "1", "--run-dir", str(tmp_path / "run")]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    lines = [x for x in p.stdout.splitlines() if x.startswith("it ")]
+    assert [x.split()[1] for x in lines] == ["3", "4", "5"]
+    assert all("stage 2" in x for x in lines)
+    assert "critic" in lines[1] and "critic" not in lines[2]
+    warm = torch.load(tmp_path / "run" / "model_4.pt", weights_only=False, map_location="cpu")
+    done = torch.load(tmp_path / "run" / "model_5.pt", weights_only=False, map_location="cpu")
+    for k, v in src["actor_state_dict"].items():
+        if k.startswith("mlp."):
+            assert torch.equal(warm["actor_state_dict"][k], v), k
+    std = [v for k, v in warm["actor_state_dict"].items() if "std" in k]
+    assert std and all(torch.allclose(s, torch.full_like(s, 0.3)) for s in std)
+    assert not torch.equal(done["actor_state_dict"]["mlp.0.weight"],
+                           src["actor_state_dict"]["mlp.0.weight"])
+    assert warm["warm_start"] == {"policy": "m.onnx", "averaged_iterations": None, "std": 0.3}
+    assert [h.get("critic_only", False) for h in done["history"][-3:]] == [True, True, False]
+    # the warm-up gathered the actor's Adam moments; the optimiser is one group again, so the
+    # checkpoints resume into a fresh PPO; the exported curve keeps the policy's own records
+    opt = warm["optimizer_state_dict"]
+    assert len(opt["param_groups"]) == 1
+    assert all(int(st["step"]) == 2 * 4 * 5 for st in opt["state"].values())  # 2 it x 4 mb x 5 ep
+    p = subprocess.run([*cmd[:4], "--resume", str(tmp_path / "run" / "model_5.pt"),
+                        "--iterations", "1", *cmd[12:-2], "--run-dir", str(tmp_path / "again")],
+                       capture_output=True, text=True, timeout=240, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert main(["export", str(tmp_path / "run" / "model_5.pt"), "--out", str(tmp_path / "n")]) == 0
+    curve = json.loads((tmp_path / "n.json").read_text())["training_history"]
+    src_curve = json.loads((tmp_path / "m.json").read_text())["training_history"]
+    assert curve[:len(src_curve)] == src_curve and curve[-1]["iteration"] == 3
+
+
+def test_from_policy_bad_inputs_exit_2_with_one_line(exported, tmp_path):
+    d, _ = exported
+    run = lambda *args: subprocess.run([sys.executable, "-m", "policy_train.cli", "tripod", *args],
+                                       capture_output=True, text=True, timeout=120, check=False)
+    (tmp_path / "lone.onnx").write_bytes((d / "pol.onnx").read_bytes())
+    for args, hint in [
+            (["--from-policy", str(d / "pol.onnx"), "--resume", str(d / "run" / "model_2.pt")],
+             "exclude each other"),
+            (["--from-policy", str(tmp_path / "lone.onnx")], "no policy metadata"),
+            (["--from-policy", str(d / "pol.onnx"), "--init-std", "0", "--num-envs", "8",
+              "--plans-per-leg", "1"], "std")]:
+        p = run(*args)
+        err = [line for line in p.stderr.splitlines() if "error:" in line]
+        assert p.returncode == 2 and len(err) == 1 and hint in err[0], (args, p.stderr)
