@@ -61,9 +61,9 @@ def _tripod(a) -> int:
         fresh = EnvConfig()
         cfg.env.rewards = RewardConfig()
         cfg.env.dr = DRConfig()
-        for k in ("terminate_on_contact", "calf_margin_m", "p_reference_start",
-                  "reference_margin_m", "reference_joint_noise", "p_reference_shift",
-                  "lift_leg_weights", "ground_clearance", "train_periods"):
+        for k in ("terminate_on_contact", "p_reference_start", "reference_margin_m",
+                  "reference_joint_noise", "p_reference_shift", "lift_leg_weights",
+                  "ground_clearance", "train_periods"):
             setattr(cfg.env, k, getattr(fresh, k))
     overrides = {"num_envs": (cfg.env, "num_envs"), "plans_per_leg": (cfg.env, "plans_per_leg"),
                  "save_interval": (cfg.ppo, "save_interval"),
@@ -71,7 +71,7 @@ def _tripod(a) -> int:
                  "steps_per_env": (cfg.ppo, "num_steps_per_env"),
                  "entropy_coef": (cfg.ppo, "entropy_coef"),
                  "lift_leg_weights": (cfg.env, "lift_leg_weights"),
-                 "calf_margin": (cfg.env, "calf_margin_m"), "threads": (cfg.env, "threads"),
+                 "threads": (cfg.env, "threads"),
                  "learning_rate": (cfg.ppo, "learning_rate")}
     for arg, (section, field) in overrides.items():
         if getattr(a, arg) is not None:
@@ -306,10 +306,6 @@ def main(argv: list[str] | None = None) -> int:
                    metavar="FIELD=VALUE", help="domain randomisation setting (repeatable), "
                    "e.g. --dr motor_strength=0.75,1.1 --dr latency_steps=0,6; on --resume it "
                    "changes the run's own")
-    t.add_argument("--calf-margin", type=_number(0.0, 0.05, "must be in [0, 0.05) m"), default=None,
-                   metavar="M",
-                   help="also end an episode when a stance calf comes within M m of the floor "
-                        "while a leg is lifted (default 0: only on contact)")
     t.add_argument("--learning-rate", type=_number(1e-7, 1.0, "must be in [1e-7, 1)"),
                    default=None, metavar="LR",
                    help="PPO's (starting) learning rate; the adaptive schedule moves it to keep "

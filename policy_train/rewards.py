@@ -122,21 +122,6 @@ def action_rate(a: np.ndarray, a_prev: np.ndarray) -> np.ndarray:
     return np.sum((a - a_prev) ** 2, -1)
 
 
-def stance_calf_low(env, margin: float) -> np.ndarray:
-    """(N,) bool: a leg is lifted (lift, hold, excitation or lower) and the collision hull of
-    one of the stance calves lies less than ``margin`` m above the floor
-    (:meth:`policy_train.model.TrainModel.calf_low_z`)."""
-    tripod = (env.lift_leg >= 0) & (env.phase >= 1) & (env.phase <= 4)
-    out = np.zeros(env.N, dtype=bool)
-    ids = np.flatnonzero(tripod)
-    if len(ids):
-        foot_z = env.sensordata[ids][:, env.tm.foot_pos + 2]
-        low = env.tm.calf_low_z(env.gravity_b[ids], env.q[ids], foot_z)
-        low[np.arange(len(ids)), env.lift_leg[ids]] = np.inf
-        out[ids] = low.min(1) < margin
-    return out
-
-
 def compute_rewards(env) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]:
     """(reward (N,), weighted terms {name: (N,)}, terminated (N,)) for the env's current state."""
     cfg, w = env.cfg, env.cfg.rewards
@@ -147,8 +132,6 @@ def compute_rewards(env) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]
     terminated = env.base_touch | (tilt > cfg.fall_tilt) | (h < cfg.fall_height)
     if cfg.terminate_on_contact:
         terminated = terminated | env.other_touch | env.lift_touch
-        if cfg.calf_margin_m > 0:
-            terminated = terminated | stance_calf_low(env, cfg.calf_margin_m)
 
     lifted = env.lift_leg
     active = (lifted >= 0) & ((env.phase == 2) | (env.phase == 3))
