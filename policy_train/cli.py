@@ -326,9 +326,9 @@ def main(argv: list[str] | None = None) -> int:
                         "critic")
     t.add_argument("--init-std", type=_number(1e-3, 10.0, "must be in [0.001, 10)"), default=0.3,
                    help="with --from-policy: exploration std of every action (default 0.3)")
-    t.add_argument("--critic-warmup", type=_count, default=100,
+    t.add_argument("--critic-warmup", type=_count, default=600,
                    help="with --from-policy: iterations that train the new critic alone, the "
-                        "actor frozen, before PPO proper (default 100)")
+                        "actor frozen, before PPO proper (default 600)")
     t.add_argument("--new-rewards", action="store_true",
                    help="with --resume or --from-policy: use the current reward weights, "
                         "episode settings (contact terminations, reference starts, ...) and "
