@@ -194,7 +194,8 @@ class Trainer:
         old = alg.optimizer
         schedule, lr = alg.schedule, alg.learning_rate
         alg.optimizer = type(old)([{"params": list(actor.parameters()), "lr": 0.0},
-                                   {"params": list(critic.parameters()), "lr": lr}], lr=lr)
+                                   {"params": list(critic.parameters()), "lr": lr}],
+                                  **old.defaults)
         alg.optimizer.state.update(old.state)
         alg.schedule = "fixed"
         try:
@@ -205,7 +206,7 @@ class Trainer:
             warm = alg.optimizer
             alg.optimizer = type(old)(
                 [{"params": list(actor.parameters()) + list(critic.parameters()), "lr": lr}],
-                lr=lr)
+                **old.defaults)
             alg.optimizer.state.update(warm.state)
             alg.schedule, alg.learning_rate = schedule, lr
 

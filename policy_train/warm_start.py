@@ -45,8 +45,12 @@ def policy_start(onnx_path: str | Path) -> dict:
     for key in ("train_config", "iterations"):
         if key not in meta:
             raise ValueError(f"{meta_path}: no {key!r}: not an exported training policy")
+    try:
+        graph = onnx.load(str(onnx_path)).graph
+    except Exception as e:  # protobuf's DecodeError and the like: not an ONNX model
+        raise ValueError(f"{onnx_path}: not a readable ONNX model ({type(e).__name__})") from e
     weights = {}
-    for init in onnx.load(str(onnx_path)).graph.initializer:
+    for init in graph.initializer:
         for prefix in ("actor.mlp.", "mlp."):
             if init.name.startswith(prefix):
                 weights[init.name[len(prefix):]] = torch.from_numpy(

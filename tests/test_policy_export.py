@@ -333,10 +333,9 @@ def test_dr_settings_change_a_resumed_runs_randomisation(exported):
            "--learning-rate", "2e-5"]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
-    env = torch.load(d / "wider" / "model_3.pt", weights_only=False,
-                     map_location="cpu")["train_config"]["env"]
-    assert env["threads"] == 1
     ckpt = torch.load(d / "wider" / "model_3.pt", weights_only=False, map_location="cpu")
+    env = ckpt["train_config"]["env"]
+    assert env["threads"] == 1
     assert ckpt["train_config"]["ppo"]["learning_rate"] == 2e-5
     # the adaptive schedule moves the rate by 1.5x per mini-batch from where it was set
     lr = ckpt["history"][-1]["learning_rate"]
@@ -347,7 +346,6 @@ def test_dr_settings_change_a_resumed_runs_randomisation(exported):
     before = torch.load(d / "run" / "model_2.pt", weights_only=False,
                         map_location="cpu")["train_config"]["env"]["dr"]
     assert tuple(dr["friction"]) == tuple(before["friction"])  # the rest is the run's own
-
 
 
 def test_export_writes_the_training_state_that_resume_continues(exported, tmp_path):
@@ -433,10 +431,13 @@ def test_from_policy_bad_inputs_exit_2_with_one_line(exported, tmp_path):
     run = lambda *args: subprocess.run([sys.executable, "-m", "policy_train.cli", "tripod", *args],
                                        capture_output=True, text=True, timeout=120, check=False)
     (tmp_path / "lone.onnx").write_bytes((d / "pol.onnx").read_bytes())
+    (tmp_path / "junk.onnx").write_bytes(b"not a graph")
+    (tmp_path / "junk.json").write_bytes((d / "pol.json").read_bytes())
     for args, hint in [
             (["--from-policy", str(d / "pol.onnx"), "--resume", str(d / "run" / "model_2.pt")],
              "exclude each other"),
             (["--from-policy", str(tmp_path / "lone.onnx")], "no policy metadata"),
+            (["--from-policy", str(tmp_path / "junk.onnx")], "not a readable ONNX model"),
             (["--from-policy", str(d / "pol.onnx"), "--init-std", "0", "--num-envs", "8",
               "--plans-per-leg", "1"], "std")]:
         p = run(*args)
