@@ -390,13 +390,13 @@ def main(argv: list[str] | None = None) -> int:
     # Input files named on the command line must exist: say so in one line, exit 2.
     if a.cmd == "tripod" and a.resume and a.from_policy:
         p.error("--resume and --from-policy exclude each other: start from one")
-    if a.cmd == "tripod" and a.from_policy and not Path(a.from_policy).with_suffix(".json").is_file():
-        p.error(f"{Path(a.from_policy).with_suffix('.json')}: no policy metadata beside the ONNX file")
     for name in ("checkpoint", "onnx", "resume", "episodes_files", "from_policy"):
         paths = getattr(a, name, None)
         for path in [paths] if isinstance(paths, str) else paths or ():
             if not Path(path).is_file():
                 p.error(f"{name} {path}: no such file")
+    if a.cmd == "tripod" and a.from_policy and not Path(a.from_policy).with_suffix(".json").is_file():
+        p.error(f"{Path(a.from_policy).with_suffix('.json')}: no policy metadata beside the ONNX file")
     if a.cmd == "eval" and a.nominal and a.dr_off:
         p.error("--dr-off needs the randomisation on: drop --nominal")
     if a.cmd == "transfer" and a.onnx is None and not a.list:
