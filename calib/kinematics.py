@@ -152,6 +152,9 @@ class LegKinematics:
         if np.any(norms < 1e-12):
             raise ValueError("joint axes must be non-zero")
         self._axes = ax / norms[:, None]
+        self.placement_rotation = r0.copy()
+        self.placement_translation = self._p0.copy()
+        self.axes = self._axes.copy()
         self._r_foot = np.asarray(foot_rotation, dtype=float).reshape(3, 3)
         self._p_foot = np.asarray(foot_translation, dtype=float).reshape(3)
         # Rodrigues with the placement folded in, for samples laid out as columns (3, N):

@@ -19,7 +19,9 @@ done      the policy alone again (deploy goes on to LOWER -> STAND; training cle
 
 While targets exist, the lifted leg's three motors get ``q_des``, ``dq_des`` and this
 schedule's ``kp`` / ``kd`` (the policy's actions for that leg are ignored, but they still feed
-``previous_actions``). Joint triples are (hip, thigh, calf) in the leg's own URDF signs, rad.
+``previous_actions``), and, with ``feedforward``, the torque ``tau`` that the planned motion
+takes with the base still (:mod:`deploy.leg_dynamics`), within the motors' effort limits.
+Joint triples are (hip, thigh, calf) in the leg's own URDF signs, rad.
 """
 
 from __future__ import annotations
@@ -30,9 +32,9 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from calib.excitation import ExcitationConfig, ExcitationPlan, plan_excitation
-from calib.joints import check_leg
+from calib.joints import EFFORT_LIMIT, check_leg
 
-__all__ = ["PHASES", "LegTarget", "LiftSchedule", "blend_targets"]
+__all__ = ["PHASES", "LegTarget", "LiftSchedule", "blend_accelerations", "blend_targets"]
 
 PHASES: tuple[str, ...] = ("shift", "lift", "hold", "excite", "lower", "done")
 
@@ -41,6 +43,12 @@ def _smooth(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Quintic smoothstep on [0, 1] (clipped) and its derivative in x."""
     x = np.clip(x, 0.0, 1.0)
     return x**3 * (10 - 15 * x + 6 * x**2), 30 * x**2 * (1 - x) ** 2
+
+
+def _smooth_dd(x: np.ndarray) -> np.ndarray:
+    """Second derivative in x of the quintic smoothstep (zero outside [0, 1])."""
+    inside = (x >= 0.0) & (x <= 1.0)
+    return np.where(inside, 60 * x * (1 - x) * (1 - 2 * x), 0.0)
 
 
 def blend_targets(t, durations, q_start, q_lift, q_exc, dq_exc):
@@ -74,11 +82,28 @@ def blend_targets(t, durations, q_start, q_lift, q_exc, dq_exc):
     return q_des, dq_des, phase
 
 
+def blend_accelerations(t, durations, q_start, q_lift, ddq_exc):
+    """Joint accelerations (N, 3), rad/s^2, of :func:`blend_targets`' ``q_des`` (same
+    arguments; ``ddq_exc`` the plan's accelerations at ``t - (shift + lift + hold)``); NaN in
+    shift and done."""
+    t = np.asarray(t, dtype=float)
+    d = np.broadcast_to(np.asarray(durations, dtype=float), t.shape + (5,))
+    ends = np.cumsum(d, axis=-1)
+    phase = (t[..., None] >= ends).sum(-1)
+    step = np.asarray(q_lift, dtype=float) - np.asarray(q_start, dtype=float)
+    a_l = (_smooth_dd((t - ends[..., 0]) / d[..., 1]) / d[..., 1] ** 2)[..., None] * step
+    a_d = -(_smooth_dd((t - ends[..., 3]) / d[..., 4]) / d[..., 4] ** 2)[..., None] * step
+    p = phase[..., None]
+    dd = np.where(p == 1, a_l, np.where(p == 2, 0.0, np.where(p == 3, ddq_exc, a_d)))
+    return np.where((p == 0) | (p == 5), np.nan, dd)
+
+
 @dataclass(frozen=True)
 class LegTarget:
     """Targets of the lifted leg's three motors now. q_des rad, dq_des rad/s, kp N m/rad, kd
     N m s/rad (hip, thigh, calf; leg's own URDF signs); phase one of :data:`PHASES`.
-    ``q_des``/``dq_des`` are None in shift and done (the policy commands the leg).
+    ``q_des``/``dq_des`` are None in shift and done (the policy commands the leg). tau: the
+    feed-forward torque, N m, or None (no ``feedforward``, or no targets).
     """
 
     phase: str
@@ -86,6 +111,7 @@ class LegTarget:
     dq_des: np.ndarray | None
     kp: float
     kd: float
+    tau: np.ndarray | None = None
 
 
 @dataclass
@@ -96,7 +122,8 @@ class LiftSchedule:
     while targets exist. t_r (s), n_basis, periods, seed, ground_clearance (m):
     :class:`calib.excitation.ExcitationConfig` of each leg's plan (other settings at their
     defaults). A policy JSON without ``ground_clearance`` was trained on plans with the
-    generator's default.
+    generator's default. feedforward: also command the planned motion's inverse-dynamics
+    torque (:class:`deploy.leg_dynamics.LegDynamics`); a JSON without it has none.
     """
 
     shift: float = 1.0
@@ -110,6 +137,7 @@ class LiftSchedule:
     periods: int = 4
     seed: int = 0
     ground_clearance: float = ExcitationConfig.ground_clearance
+    feedforward: bool = False
 
     def __post_init__(self) -> None:
         for k in ("shift", "lift", "hold", "lower"):
@@ -120,6 +148,10 @@ class LiftSchedule:
             raise ValueError("kp must be > 0 and kd >= 0")
         if not (np.isfinite(self.ground_clearance) and self.ground_clearance >= 0):
             raise ValueError(f"ground_clearance must be >= 0 m, got {self.ground_clearance}")
+        if not isinstance(self.feedforward, bool):
+            # a bad JSON value, reported like the others (the loaders catch ValueError)
+            raise ValueError(  # noqa: TRY004
+                f"feedforward must be true or false, got {self.feedforward!r}")
         self._plans: dict[str, ExcitationPlan] = {}
 
     # ------------------------------------------------------------------ metadata
@@ -162,11 +194,13 @@ class LiftSchedule:
         ends = np.cumsum(self.durations(leg))
         return PHASES[int((float(t) >= ends).sum())]
 
-    def targets(self, leg: str, t: float, q_start) -> LegTarget:
+    def targets(self, leg: str, t: float, q_start, gravity_b=None) -> LegTarget:
         """Targets of ``leg`` at ``t`` s after the lift command.
 
         q_start: (3,) rad, the leg's joint positions when the shift phase ended (the caller
         latches them at the first call in ``lift``; during ``shift`` pass the current ones).
+        gravity_b: (3,) unit direction of gravity in the base frame (the projected gravity)
+        for the feed-forward torque; None: level.
         """
         if not np.isfinite(t) or t < 0:
             raise ValueError(f"t must be a finite time >= 0 s, got {t}")
@@ -182,4 +216,26 @@ class LiftSchedule:
         name = PHASES[int(ph[0])]
         if name in ("shift", "done"):
             return LegTarget(name, None, None, self.kp, self.kd)
-        return LegTarget(name, q[0], dq[0], self.kp, self.kd)
+        tau = None
+        if self.feedforward:
+            ddq = blend_accelerations(np.array([float(t)]), d, qs[None], plan.q0[None],
+                                      plan.accelerations([te]))
+            tau = self.feedforward_torque(leg, q, dq, ddq, gravity_b)[0]
+        return LegTarget(name, q[0], dq[0], self.kp, self.kd, tau)
+
+    @staticmethod
+    def feedforward_torque(leg: str, q, dq, ddq, gravity_b=None) -> np.ndarray:
+        """(N, 3) N m: the torque of the planned (q, dq, ddq) of ``leg``, base still, clipped
+        to the motors' effort limits (a bad tilt input must not ask for more)."""
+        from deploy.leg_dynamics import LegDynamics  # deferred: reads the URDF once
+
+        tau = LegDynamics.of_leg(leg).torques(q, dq, ddq, gravity_b)
+        return np.clip(tau, -EFFORT_LIMIT, EFFORT_LIMIT)
+
+    @staticmethod
+    def feedforward_table(leg: str, q, dq, ddq):
+        """:meth:`feedforward_torque` of a tabulated plan (N, 3 each) as a
+        :class:`deploy.leg_dynamics.TorqueTable`, the tilt given per sample."""
+        from deploy.leg_dynamics import LegDynamics
+
+        return LegDynamics.of_leg(leg).table(q, dq, ddq, EFFORT_LIMIT)

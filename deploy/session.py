@@ -351,14 +351,17 @@ class Session:
         self._k_lift = self.k + 1  # the lift command is given at TRIPOD's first tick
         self._go(State.TRIPOD, cause)
 
-    def _schedule_target(self, lift_leg: str, t_lift: float, q: np.ndarray):
-        """The lift schedule's target of ``lift_leg`` at ``t_lift`` (latching q_start)."""
+    def _schedule_target(self, lift_leg: str, t_lift: float, inp: TickInput):
+        """The lift schedule's target of ``lift_leg`` at ``t_lift`` (latching q_start); its
+        feed-forward torque, if any, for the body's measured tilt."""
         sched = self.meta.schedule
+        q = np.asarray(inp.q, dtype=float)
         idx = sdk_indices(lift_leg)
         if self._q_start is None and sched.phase(lift_leg, t_lift) != "shift":
             self._q_start = q[idx].copy()  # latched at the first tick of lift
         q_start = self._q_start if self._q_start is not None else q[idx]
-        return sched.targets(lift_leg, t_lift, q_start)
+        gravity = projected_gravity(inp.quat) if inp.quat is not None else None
+        return sched.targets(lift_leg, t_lift, q_start, gravity)
 
     def _policy_command(self, inp: TickInput, lift_leg: str | None, leg_target) -> Command:
         """Policy tick: observation, ONNX, delta target; the lifted leg from ``leg_target``
@@ -403,11 +406,13 @@ class Session:
             dq[idx] = leg_target.dq_des
             kp[idx] = leg_target.kp
             kd[idx] = leg_target.kd
+        tau = self._zeros.copy()
+        if leg_target is not None and leg_target.tau is not None:
+            tau[sdk_indices(lift_leg)] = leg_target.tau
         q_des = self.sup.limit(target, self._prev_target)
         self._prev_target = q_des
         self.phase = phase
-        return Command(q_des, dq, kp, kd, self._zeros.copy(), f"policy:{phase or 'stand'}",
-                       obs, actions)
+        return Command(q_des, dq, kp, kd, tau, f"policy:{phase or 'stand'}", obs, actions)
 
     def _lift_time(self) -> float:
         return (self.k - self._k_lift) * self.dt
@@ -417,7 +422,7 @@ class Session:
             return self._lower_now(inp)
         sched = self.meta.schedule
         t = self._lift_time()
-        cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp.q))
+        cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp))
         if self.state is State.DAMP:
             return cmd
         if self.phase == "excite":
@@ -437,7 +442,7 @@ class Session:
         if self._abort:
             return self._lower_now(inp)
         t = self._lift_time()
-        cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp.q))
+        cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp))
         if self.state is State.DAMP:
             return cmd
         if self.phase != "excite":
@@ -490,7 +495,7 @@ class Session:
             done = self.t_state >= end + self.cfg.lower_settle_s
         else:
             t = self._lift_time()
-            cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp.q))
+            cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp))
             done = t >= sched.total(self.leg) + self.cfg.lower_settle_s
         if self.state is State.DAMP:
             return cmd

@@ -68,7 +68,7 @@ class DRConfig:
     motor_strength: tuple[float, float] = (0.9, 1.1)        # scales the motor torque law
     latency_steps: tuple[int, int] = (0, 4)                 # physics steps (x 5 ms): 0-20 ms
     # dry (Coulomb) friction of each leg joint, N m, drawn per joint and episode. Off in v7's
-    # training (v7 did better with it on sim.go2 than without: docs/results/policy_transfer.md)
+    # training (v7 did better with it on sim.go2 than without: docs/results/policy_transfer*.md)
     joint_friction: tuple[float, float] = (0.0, 0.0)
     push_interval: tuple[float, float] = (4.0, 8.0)         # s between pushes
     push_vel: float = 0.3                                   # m/s added to base vx, vy (+-)
@@ -144,6 +144,9 @@ class EnvConfig:
     # lifted leg: schedule (deploy.lift_schedule) and the pool of excitation plans
     lift_kp: float = 40.0
     lift_kd: float = 1.0
+    # also the planned motion's inverse-dynamics torque on the lifted leg (LiftSchedule's
+    # feedforward; deploy.leg_dynamics): a quarter of the lag, the executed CN ~1.05 not 1.11
+    lift_feedforward: bool = True
     shift_s: float = 1.0
     lift_s: float = 0.6
     hold_s: float = 0.5
@@ -231,6 +234,7 @@ class TrainConfig:
         e.setdefault("lift_leg_weights", (1.0, 1.0, 1.0, 1.0))
         e.setdefault("ground_clearance", ExcitationConfig.ground_clearance)  # the default then
         e.setdefault("train_periods", 1)
+        e.setdefault("lift_feedforward", False)  # the lifted leg had PD alone before it
         if isinstance(e["train_periods"], int):  # a single count before v6
             e["train_periods"] = (e["train_periods"], e["train_periods"])
         dr = {k: tuple(v) if isinstance(v, list) else v for k, v in e.pop("dr").items()}

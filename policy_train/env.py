@@ -30,7 +30,7 @@ from calib.joints import (
     position_limits,
     sdk_to_model,
 )
-from deploy.lift_schedule import PHASES, blend_targets
+from deploy.lift_schedule import PHASES, LiftSchedule, blend_accelerations, blend_targets
 from deploy.observation import TERM_SIZES, build_observation, default_terms, projected_gravity
 from policy_train.config import OBS_NOISE, EnvConfig
 from policy_train.model import TrainModel
@@ -150,6 +150,15 @@ class PlanPool:
         i = np.clip(np.rint(te / self.dt).astype(int), 0, self.length[k] - 1)
         inside = (te >= 0) & (te <= self.duration[k])
         return self.q[k, i], np.where(inside[:, None], self.dq[k, i], 0.0)
+
+    def sample_acceleration(self, k: np.ndarray, te: np.ndarray) -> np.ndarray:
+        """Plan k (N,) at te (N,) s: ddq (N, 3), rad/s^2 (central differences of the tabulated
+        rates, which pools saved before it also give)."""
+        if not hasattr(self, "_ddq"):
+            self._ddq = np.gradient(self.dq, self.dt, axis=1)
+        i = np.clip(np.rint(te / self.dt).astype(int), 0, self.length[k] - 1)
+        inside = (te >= 0) & (te <= self.duration[k])
+        return np.where(inside[:, None], self._ddq[k, i], 0.0)
 
 
 class TripodEnv:
@@ -399,10 +408,11 @@ class TripodEnv:
 
     # ------------------------------------------------------------------ lifted leg
     def _lift_targets(self, t: np.ndarray):
-        """(ids, joint idx (n, 3), q_des, dq_des, phase) of envs whose lifted leg is overridden."""
+        """(ids, joint idx (n, 3), q_des, dq_des, tau (n, 3) N m or None, phase) of envs whose
+        lifted leg is overridden; tau is the feed-forward torque (``cfg.lift_feedforward``)."""
         act = np.flatnonzero(self.lift_leg >= 0)
         if len(act) == 0:
-            return act, None, None, None, np.zeros(0, int)
+            return act, None, None, None, None, np.zeros(0, int)
         d = self.lift_dur[act]
         # latch the leg's joints when the shift phase ends (deploy.lift_schedule's q_start)
         latch = act[(t[act] >= d[:, 0]) & ~self.lift_latched[act]]
@@ -419,7 +429,18 @@ class TripodEnv:
         dq_exc = np.where(hold[:, None], 0.0, dq_exc)
         qd, dqd, ph = blend_targets(t[act], d, self.lift_q_start[act], q0, q_exc, dq_exc)
         jidx = 3 * self.lift_leg[act][:, None] + np.arange(3)
-        return act, jidx, qd, dqd, ph
+        tau = None
+        if self.cfg.lift_feedforward:
+            ddq_exc = np.where(hold[:, None], 0.0, self.pool.sample_acceleration(k, te))
+            ddq = blend_accelerations(t[act], d, self.lift_q_start[act], q0, ddq_exc)
+            on = (ph >= 1) & (ph <= 4)
+            tau = np.zeros((len(act), 3))
+            for li, leg in enumerate(MODEL_LEGS):
+                m = on & (self.lift_leg[act] == li)
+                if m.any():
+                    tau[m] = LiftSchedule.feedforward_torque(leg, qd[m], dqd[m], ddq[m],
+                                                             self.gravity_b[act[m]])
+        return act, jidx, qd, dqd, tau, ph
 
     # ------------------------------------------------------------------ step
     def step(self, actions_sdk: np.ndarray):
@@ -449,7 +470,7 @@ class TripodEnv:
             ctrl[late] = self.past_targets[late, back[late] - 1]
             kp_s, kd_s = kp.copy(), kd.copy()
             t = self.lift_t + s * cfg.physics_dt
-            act, jidx, qd, dqd, ph = self._lift_targets(t)
+            act, jidx, qd, dqd, tau, ph = self._lift_targets(t)
             if len(act):
                 self.phase[act] = ph
                 on = (ph >= 1) & (ph <= 4)
@@ -460,6 +481,10 @@ class TripodEnv:
                     kp_s[ai[:, None], ji] = kl
                     kd_s[ai[:, None], ji] = dl
                     ctrl[ai[:, None], ji] = qd[on] + (cfg.lift_kd / cfg.lift_kp) * dqd[on]
+                    if tau is not None:
+                        # the actuator is kp (ctrl - q) - kd dq: tau enters through ctrl,
+                        # scaled by the motor strength as the PD law is
+                        ctrl[ai[:, None], ji] += tau[on] / (cfg.lift_kp * self.kp_s[ai, None])
                     if s == cfg.decimation - 1:
                         last = (ai, ji, qd[on])
                 done = ph == 5

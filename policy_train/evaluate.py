@@ -69,7 +69,7 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
     cfg.action_clip = float(meta["action"]["clip"])
     sched = LiftSchedule.from_metadata(meta["lift_schedule"])
     cfg.shift_s, cfg.lift_s, cfg.hold_s, cfg.lower_s = sched.shift, sched.lift, sched.hold, sched.lower
-    cfg.lift_kp, cfg.lift_kd = sched.kp, sched.kd
+    cfg.lift_kp, cfg.lift_kd, cfg.lift_feedforward = sched.kp, sched.kd, sched.feedforward
     pool = PlanPool.from_plans([sched.plan(leg) for leg in MODEL_LEGS], cfg.physics_dt)
     env = TripodEnv(cfg, plan_pool=pool)
     env.obs_terms = meta["observation"]["terms"]  # the JSON's terms, as on board

@@ -104,7 +104,8 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
     hi = np.concatenate([cj.position_limits(leg)[1] for leg in cj.SDK_LEGS]) - e.soft_limit_margin
     sched = LiftSchedule(shift=e.shift_s, lift=e.lift_s, hold=e.hold_s, lower=e.lower_s,
                          kp=e.lift_kp, kd=e.lift_kd, t_r=EVAL_T_R, n_basis=e.n_basis,
-                         periods=EVAL_PERIODS, seed=0, ground_clearance=e.ground_clearance)
+                         periods=EVAL_PERIODS, seed=0, ground_clearance=e.ground_clearance,
+                         feedforward=e.lift_feedforward)
     fl = lambda a: [float(x) for x in np.asarray(a, dtype=float)]
     return {
         "schema_version": 1,

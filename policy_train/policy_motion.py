@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.joints import check_leg, model_indices, model_to_sdk, sdk_indices, sdk_to_model
-from deploy.lift_schedule import PHASES, blend_targets
+from deploy.lift_schedule import PHASES, blend_accelerations, blend_targets
 from deploy.observation import build_observation, projected_gravity
 from deploy.policy import PolicyMeta, PolicyRunner
 from policy_train.config import OBS_NOISE
@@ -177,13 +177,14 @@ def run_policy_a2i(
     zeros3 = np.zeros(3)
     lift_on = False
     q_start = None
-    sched_q = sched_dq = sched_phase = None  # per physics step from the latch on
+    sched_q = sched_dq = sched_phase = sched_tau = None  # per physics step from the latch on
     k_latch = 0
     fell = False
     phase = -1
     q_cmd = sdk_to_model(runner.target)
     dq_cmd = np.zeros(12)
     kp_c, kd_c = kp_m.copy(), kd_m.copy()
+    tau_c = 0.0
     for k in range(n_total):
         t_lift = (k - n_settle) * timestep  # s since the lift command (< 0: settling)
         if t_lift >= 0:
@@ -197,6 +198,11 @@ def run_policy_a2i(
                 sched_q, sched_dq, sched_phase = blend_targets(
                     tt, dur, q_start[None], plan.q0[None], plan.positions(te),
                     plan.velocities(te))
+                if sched.feedforward:
+                    ddq = blend_accelerations(tt, dur, q_start[None], plan.q0[None],
+                                              plan.accelerations(te))
+                    sched_tau = sched.feedforward_table(leg, sched_q, sched_dq,
+                                                        np.nan_to_num(ddq))
             if sched_phase is not None:
                 phase = int(sched_phase[k - k_latch])
         if k % n_ctrl == 0:
@@ -228,9 +234,13 @@ def run_policy_a2i(
             dq_cmd[idx_m] = sched_dq[j]
             kp_c[idx_m] = sched.kp
             kd_c[idx_m] = sched.kd
+            if sched_tau is not None:
+                tau_c = np.zeros(12)
+                tau_c[idx_m] = sched_tau.at(j, projected_gravity(sim.base_quat_wxyz))
         elif phase == _DONE:
             kp_c[idx_m], kd_c[idx_m] = kp_m[idx_m], kd_m[idx_m]
-        sim.set_command(q_cmd, dq_cmd, kp_c, kd_c, 0.0)
+            tau_c = 0.0
+        sim.set_command(q_cmd, dq_cmd, kp_c, kd_c, tau_c)
         if sim.time >= next_push:
             v = disturbance.push_vel
             sim.push([rng.uniform(-v, v), rng.uniform(-v, v), 0.0])

@@ -215,3 +215,20 @@ def test_joystick_mode(meta_paths):
     assert rig.s.finished and rig.s.fault.startswith("motor 3")
     rig.tick(combos=("stand",))
     assert rig.s.state is State.DAMP  # final now
+
+
+def test_feedforward_schedule_sends_the_lifted_leg_torque(tmp_path):
+    from deploy.hold_policy import write_hold_policy
+
+    sched = LiftSchedule(shift=0.2, lift=0.2, hold=0.2, lower=0.2, periods=1, feedforward=True)
+    rig = Rig(write_hold_policy(tmp_path, "ff", schedule=sched), legs=("RL",))
+    rig.run_until(State.TRIPOD)
+    assert not rig.tick().tau.any()  # shift: the policy alone, no torque
+    rig.run_until(State.CALIBRATE)
+    cmd = rig.tick()
+    idx = sdk_indices("RL")
+    t = (rig.s.k - 1 - rig.s._k_lift) * 0.02
+    want = rig.meta.schedule.targets("RL", t, rig.s._q_start, [0.0, 0.0, -1.0]).tau
+    np.testing.assert_allclose(cmd.tau[idx], want)
+    assert np.abs(cmd.tau[idx]).max() > 0.1  # the leg's weight, at least
+    assert not np.delete(cmd.tau, idx).any()

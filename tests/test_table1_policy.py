@@ -170,3 +170,12 @@ def test_free_table_json_and_page(tmp_path):
     assert out.read_text() == page
     (tmp_path / "t1_policy.json").write_text("[]")
     assert main(["bench", "--from-json", str(src), "--out", str(out)]) == 2
+
+
+def test_feedforward_schedule_tracks_closer_on_the_floor(policy_run):
+    _, run, _ = policy_run
+    ff = load_policy(POLICY)
+    ff.meta.schedule = dataclasses.replace(ff.meta.schedule, feedforward=True)
+    run_ff, health = run_policy_a2i(ff, "FL", settle_s=SETTLE, periods=1, after_s=0.0)
+    assert not health.fell
+    assert np.all(run_ff.tracking_rmse[:3] < 0.5 * run.tracking_rmse[:3])

@@ -1,0 +1,102 @@
+"""deploy.leg_dynamics: the leg's fixed-base inverse dynamics equals pinocchio's RNEA on the
+whole Go2 (any gravity direction), plus the rotor inertia; and the lift schedule's
+feed-forward torque is that of its planned motion."""
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from calib.robot import go2_urdf_path
+from deploy.leg_dynamics import GRAVITY, ROTOR_INERTIA, LegDynamics
+from deploy.lift_schedule import LiftSchedule, blend_accelerations, blend_targets
+
+
+@pytest.mark.parametrize("leg", ["FL", "FR", "RL", "RR"])
+def test_matches_pinocchio_rnea(leg):
+    model = pin.buildModelFromUrdf(str(go2_urdf_path()))
+    data = model.createData()
+    dyn = LegDynamics.of_leg(leg)
+    idx = [model.joints[model.getJointId(f"{leg}_{j}_joint")].idx_v
+           for j in ("hip", "thigh", "calf")]
+    rng = np.random.default_rng(3)
+    n = 16
+    q, dq, ddq = (rng.uniform(-lim, lim, (n, model.nv)) for lim in (1.5, 4.0, 30.0))
+    g = rng.normal(size=(n, 3))
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    mine = dyn.torques(q[:, idx], dq[:, idx], ddq[:, idx], g)
+    for i in range(n):
+        model.gravity.linear = GRAVITY * g[i]
+        ref = pin.rnea(model, data, q[i], dq[i], ddq[i])[idx]
+        np.testing.assert_allclose(mine[i], ref + ROTOR_INERTIA * ddq[i, idx], atol=1e-9)
+
+
+def test_level_default_and_broadcasting():
+    dyn = LegDynamics.of_leg("RL")
+    q = np.array([0.0, 0.9, -1.8])
+    still = dyn.torques(q, np.zeros(3), np.zeros(3))
+    np.testing.assert_allclose(still, dyn.torques(q, 0, 0, [0.0, 0.0, -1.0]))
+    assert still.shape == (1, 3)
+    # standing still, level: the thigh and calf hold the leg up against gravity
+    assert abs(still[0, 1]) > 0.1 and abs(still[0, 2]) > 0.05
+    np.testing.assert_allclose(dyn.torques(q, 0, 0, [0.0, 0.0, 0.0]), 0.0, atol=1e-12)
+
+
+def test_table_gives_the_torque_under_any_tilt_within_the_limit():
+    dyn = LegDynamics.of_leg("FR")
+    rng = np.random.default_rng(5)
+    q, dq, ddq = (rng.uniform(-lim, lim, (8, 3)) for lim in (1.0, 6.0, 60.0))
+    limit = np.array([2.0, 3.0, 4.0])
+    table = dyn.table(q, dq, ddq, limit)
+    full = dyn.table(q, dq, ddq)
+    for i in range(8):
+        g = rng.normal(size=3)
+        g /= np.linalg.norm(g)
+        ref = dyn.torques(q[i], dq[i], ddq[i], g)[0]
+        np.testing.assert_allclose(full.at(i, g), ref, atol=1e-12)
+        np.testing.assert_allclose(table.at(i, g), np.clip(ref, -limit, limit), atol=1e-12)
+    np.testing.assert_allclose(full.at(3), dyn.torques(q[3], dq[3], ddq[3])[0], atol=1e-12)
+    assert np.any(np.abs([full.at(i) for i in range(8)]) > limit)  # the clip was exercised
+
+
+def test_schedule_feedforward_is_the_planned_motion_torque():
+    plain = LiftSchedule(t_r=0.3, periods=1, n_basis=6)
+    ff = LiftSchedule(t_r=0.3, periods=1, n_basis=6, feedforward=True)
+    q_start = np.array([-0.1, 0.85, -1.55])
+    d = ff.durations("FR")
+    plan = ff.plan("FR")
+    g = np.array([0.05, -0.03, -1.0]) / np.linalg.norm([0.05, -0.03, -1.0])
+    for t in np.linspace(0.0, d.sum() + 0.5, 23):
+        a, b = plain.targets("FR", t, q_start), ff.targets("FR", t, q_start, g)
+        assert a.tau is None and a.phase == b.phase
+        if b.q_des is None:
+            assert b.tau is None
+            continue
+        np.testing.assert_allclose(b.q_des, a.q_des)
+        te = t - d[:3].sum()
+        ddq = blend_accelerations(np.array([t]), d, q_start[None], plan.q0[None],
+                                  plan.accelerations([te]))
+        np.testing.assert_allclose(
+            b.tau, LegDynamics.of_leg("FR").torques(b.q_des, b.dq_des, ddq, g)[0])
+    with pytest.raises(ValueError, match="feedforward"):
+        LiftSchedule(feedforward="yes")
+    old = {k: v for k, v in ff.to_metadata().items() if k != "feedforward"}
+    assert LiftSchedule.from_metadata(old).feedforward is False
+    assert LiftSchedule.from_metadata(ff.to_metadata()).feedforward is True
+
+
+def test_blended_accelerations_are_the_rates_derivative():
+    sched = LiftSchedule(t_r=0.3, periods=1, n_basis=6)
+    plan = sched.plan("FL")
+    d = sched.durations("FL")
+    t = np.arange(0.0, d.sum() + 0.3, 1e-4)
+    te = t - d[:3].sum()
+    qs, q0 = np.tile([0.1, 0.85, -1.55], (len(t), 1)), np.tile(plan.q0, (len(t), 1))
+    _, dq, ph = blend_targets(t, d, qs, q0, plan.positions(te), plan.velocities(te))
+    dd = blend_accelerations(t, d, qs, q0, plan.accelerations(te))
+    assert np.isnan(dd[(ph == 0) | (ph == 5)]).all()
+    on = (ph >= 1) & (ph <= 4)
+    num = np.gradient(dq, t, axis=0)
+    # away from the phase boundaries (where a one-sided difference straddles two phases)
+    ends = np.cumsum(d)
+    far = on & (np.abs(t[:, None] - ends[None]).min(1) > 1e-3)
+    np.testing.assert_allclose(dd[far], num[far], atol=2e-3 * np.abs(dd[far]).max())
