@@ -181,6 +181,15 @@ class LiftSchedule:
             self._plans[leg] = plan_excitation(self.excitation_config(leg))
         return self._plans[leg]
 
+    def prepare(self, leg: str) -> None:
+        """Build now what :meth:`targets` of ``leg`` needs (its plan; with ``feedforward``, the
+        leg's dynamics, read from the URDF): a control loop calls this before it starts."""
+        self.plan(leg)
+        if self.feedforward:
+            from deploy.leg_dynamics import LegDynamics
+
+            LegDynamics.of_leg(leg)
+
     def durations(self, leg: str) -> np.ndarray:
         """(5,) s: shift, lift, hold, excite, lower."""
         return np.array([self.shift, self.lift, self.hold, self.plan(leg).duration, self.lower])

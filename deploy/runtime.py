@@ -198,14 +198,14 @@ class DeployRunner:
             if m.path not in runners:
                 runners[m.path] = PolicyRunner(m)
         self.policies = {leg: runners[m.path] for leg, m in self.metas.items()}
-        # Plan every excitation and load every leg's kinematics now (0.1-0.4 s each): never
-        # inside the loop, nor once per solve.
+        # Plan every excitation (and load the lifted legs' dynamics for the feed-forward) and
+        # every leg's kinematics now (0.1-0.4 s each): never inside the loop, nor once per solve.
         from calib.kinematics import LegKinematics
 
         self._kin = {}
         for leg in dict.fromkeys(config.legs or sorted(imu_legs)):
             if leg in self.metas:
-                self.metas[leg].schedule.plan(leg)
+                self.metas[leg].schedule.prepare(leg)
             self._kin[leg] = LegKinematics.from_urdf(leg=leg)
         rec_cfg = RecorderConfig(seconds=config.record_seconds, imu_hz=config.imu_hz,
                                  legs=tuple(sorted(imu_legs)) or ("FL",))

@@ -100,3 +100,17 @@ def test_blended_accelerations_are_the_rates_derivative():
     ends = np.cumsum(d)
     far = on & (np.abs(t[:, None] - ends[None]).min(1) > 1e-3)
     np.testing.assert_allclose(dd[far], num[far], atol=2e-3 * np.abs(dd[far]).max())
+
+
+def test_prepare_builds_what_the_loop_needs_before_it_starts():
+    cached = LegDynamics.of_leg.__func__
+    cached.cache_clear()
+    plain = LiftSchedule(t_r=0.3, periods=1, n_basis=6)
+    plain.prepare("RR")
+    assert "RR" in plain._plans and cached.cache_info().currsize == 0
+    ff = LiftSchedule(t_r=0.3, periods=1, n_basis=6, feedforward=True)
+    ff.prepare("RR")
+    assert cached.cache_info().currsize == 1
+    hits = cached.cache_info().hits
+    ff.targets("RR", ff.total("RR") - 0.1, np.array([0.0, 0.9, -1.8]))
+    assert cached.cache_info().hits > hits and cached.cache_info().currsize == 1
