@@ -132,6 +132,11 @@ class ExcitationConfig:
         """Period 2 pi / f = 8 t_r, s."""
         return 8.0 * float(self.t_r)
 
+    @property
+    def duration(self) -> float:
+        """Length of the played excitation, lead-in and lead-out ramps included, s."""
+        return 2.0 * float(self.ramp) + self.periods * self.period
+
     def q0(self) -> np.ndarray:
         """Start/end pose of the leg (hip, thigh, calf), rad."""
         if self.start_pose is None:
@@ -588,10 +593,9 @@ def plan_excitation(config: ExcitationConfig, kappa_target: float = 1.005,
     n = cfg.n_basis
     A, B, C = th[:n] * mir[0], th[n:2 * n].copy(), th[2 * n:3 * n].copy()
     h0, s0, c0 = float(th[3 * n] * mir[0]), float(th[3 * n + 1]), float(th[3 * n + 2])
-    duration = 2 * cfg.ramp + cfg.periods * cfg.period
     return ExcitationPlan(
         leg=cfg.leg, config=cfg, f=cfg.f, period=cfg.period, A=A, B=B, C=C, h0=h0, s0=s0, c0=c0,
-        q0=q0, kappa=float(kap), duration=duration,
+        q0=q0, kappa=float(kap), duration=cfg.duration,
         steady_window=(cfg.ramp, cfg.ramp + cfg.periods * cfg.period),
         iterations=prob.iterations, process_time=time.process_time() - t_start,
         objective=float(fun), restarts=starts - 1, info={"violations": viol},

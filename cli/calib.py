@@ -242,10 +242,14 @@ def _bench_policy(args, t0: float, out: Path):
     shown = "; ".join(f"{g} {p}" for g, p in per_leg.items())
     _say(f"Table I, free base, A2I by {shown}: {len(seeds)} seeds x {len(legs)} legs x 3 noise "
          f"levels x 4 motions, {args.workers or 'all'} worker processes")
+    # each leg's A2I record: the excitation phase of its policy's lift schedule
+    record_s = {g: float(PolicyMeta.load(Path(p).with_suffix(".json")).schedule.durations(g)[3])
+                for g, p in per_leg.items()}
     rows, runs = run_table1_free(
-        functools.partial(run_policy_a2i_per_leg, per_leg), seeds, legs, workers=args.workers,
+        functools.partial(run_policy_a2i_per_leg, per_leg), record_s, seeds, legs,
+        workers=args.workers,
         progress=lambda i, n: _say(f"  simulated {i}/{n} runs ({time.time() - t0:.0f} s)"))
-    free = FreeTable(rows, runs, seeds, " ".join(args.policy), time.time() - t0)
+    free = FreeTable(rows, runs, seeds, " ".join(args.policy), time.time() - t0, record_s)
     write_text_atomic(_free_json(out), free.to_json())
     held_path = out.with_suffix(".json")
     held = _read_held(held_path) if held_path.is_file() else None
@@ -270,7 +274,7 @@ def cmd_bench(args) -> int:
         rows = _read_held(src)
         seeds = sorted({r.seed for r in rows})
         free = _read_free(_free_json(src)) if _free_json(src).is_file() else None
-        md = render_page(rows, seeds, None, free)
+        md = render_page(rows, seeds, _held_wall_time(src.with_suffix(".md")), free)
     elif args.policy:
         md, shown = _bench_policy(args, t0, out)
     else:

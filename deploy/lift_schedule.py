@@ -192,7 +192,8 @@ class LiftSchedule:
 
     def durations(self, leg: str) -> np.ndarray:
         """(5,) s: shift, lift, hold, excite, lower."""
-        return np.array([self.shift, self.lift, self.hold, self.plan(leg).duration, self.lower])
+        return np.array([self.shift, self.lift, self.hold, self.excitation_config(leg).duration,
+                         self.lower])
 
     def total(self, leg: str) -> float:
         """Time from the command to the start of ``done``, s."""

@@ -15,6 +15,7 @@ once per motion, the foot IMUs are applied afterwards: one run serves every nois
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +55,16 @@ class MotionRun:
         """(q, dq) of ``leg`` as measured, (N, 3) each, (hip, thigh, calf)."""
         idx = sdk_indices(leg)
         return self.q[:, idx], self.dq[:, idx]
+
+    def head(self, seconds: float) -> MotionRun:
+        """The first ``seconds`` s of the record (samples stamped up to ``t[0] + seconds``), to
+        compare motions on records of one length. tracking_rmse is the whole run's."""
+        if not seconds > 0:
+            raise ValueError(f"record length must be > 0 s, got {seconds}")
+        n = int(np.searchsorted(self.t, self.t[0] + seconds + 1e-9, side="right"))
+        return dataclasses.replace(self, t=self.t[:n], q=self.q[:n], dq=self.dq[:n],
+                                   base_gyro=self.base_gyro[:n],
+                                   foot_omega=self.foot_omega[:, :n], foot_sf=self.foot_sf[:, :n])
 
     def foot_imu(self, leg: str, config: FootImuConfig) -> ImuBatch:
         """Samples of a foot IMU mounted on ``leg`` with ``config``, from this run's truth."""

@@ -4,7 +4,9 @@
 seeds. Each (motion, seed) is simulated once (:func:`sim.calibration_run.run_motion`, base held
 on the motion's prescribed trajectory, joints under PD at 1 kHz, encoders at 500 Hz); the foot
 IMUs are then applied to the recorded truth with each noise level, so every motion is judged on
-the same hidden mountings.
+the same hidden mountings, and on records of one length (the A2I excitation's: with white
+gyro noise the rotation error falls as the square root of the record's length, so a longer
+record would buy a baseline accuracy its motion does not earn).
 
 Two pipelines are scored on the same data:
 
@@ -48,8 +50,6 @@ MOTIONS = ("walk", "spin", "wave", "a2i")
 PIPELINES = ("paper", "ours")
 IMU_RATE = 400.0
 """Foot-IMU rate of the study, Hz."""
-DURATION = 20.0
-"""Duration of the walk, spin and wave motions, s (A2I: its plan, 18 s with ramps)."""
 
 # Scoring configuration: no gate may stop an estimate (the gates are evaluated separately).
 _UNGATED = SolverConfig(min_eigenvalue=0.0, max_condition_number=np.inf, min_correlation=0.0,
@@ -107,22 +107,34 @@ def _mounting_seed(seed: int, leg: str) -> int:
     return 1000 * seed + LEGS.index(leg)
 
 
-def _make_motion(name: str, seed: int, leg: str | None):
+def held_record_s() -> float:
+    """Length of every held-base record, s: the A2I plan's (the generator's defaults, ramps
+    included, the same for every leg and seed), which walk, spin and wave are given too, so
+    that the motions are compared on records of one length."""
+    return ExcitationConfig(leg=LEGS[0]).duration
+
+
+def _make_motion(name: str, seed: int, leg: str | None, duration: float):
+    """The motion ``name``; walk, spin and wave last ``duration`` s, A2I its plan."""
     if name == "walk":
-        return walk_motion(DURATION, 200.0, seed)
+        return walk_motion(duration, 200.0, seed)
     if name == "spin":
-        return spin_motion(DURATION, 200.0, seed)
+        return spin_motion(duration, 200.0, seed)
     if name == "wave":
-        return wave_motion(leg, DURATION, 200.0, seed)
+        return wave_motion(leg, duration, 200.0, seed)
     if name == "a2i":
         return a2i_motion(plan_excitation(ExcitationConfig(leg=leg, seed=seed)), 200.0)
     raise ValueError(f"unknown motion {name!r}: expected one of {', '.join(MOTIONS)}")
 
 
-def score_run(run: MotionRun, motion: str, legs, noises, seed: int) -> list[Table1Row]:
-    """Score every (leg, noise, pipeline) calibration from one simulated motion."""
+def score_run(run: MotionRun, motion: str, legs, noises, seed: int,
+              record_s: dict[str, float] | None = None) -> list[Table1Row]:
+    """Score every (leg, noise, pipeline) calibration from one simulated motion.
+    record_s: {leg: s}, score that leg on the first s of the record (None: all of it)."""
     rows = []
+    whole = run
     for leg in legs:
+        run = whole if record_s is None else whole.head(record_s[leg])
         kin = LegKinematics.from_urdf(leg=leg)
         q, dq = run.leg_joints(leg)
         omega_rel = kin.foot_angular_velocity(q, dq)
@@ -151,7 +163,7 @@ def score_run(run: MotionRun, motion: str, legs, noises, seed: int) -> list[Tabl
 
 def _job(args) -> list[Table1Row]:
     motion, seed, leg, legs, noises = args
-    run = run_motion(_make_motion(motion, seed, leg))
+    run = run_motion(_make_motion(motion, seed, leg, held_record_s()))
     return score_run(run, motion, legs if leg is None else [leg], noises, seed)
 
 
@@ -197,17 +209,19 @@ class FreeRun:
 @dataclass
 class FreeTable:
     """The free-base Table I: scored rows, the runs' health, the seeds, the policy file name,
-    wall time (s)."""
+    wall time (s), and each leg's record length (s; None in files written before it was
+    kept)."""
 
     rows: list[Table1Row]
     runs: list[FreeRun]
     seeds: list[int]
     policy: str
     elapsed_s: float | None = None
+    record_s: dict[str, float] | None = None
 
     def to_json(self) -> str:
         return json.dumps({"policy": self.policy, "seeds": list(self.seeds),
-                           "elapsed_s": self.elapsed_s,
+                           "elapsed_s": self.elapsed_s, "record_s": self.record_s,
                            "rows": [dataclasses.asdict(r) for r in self.rows],
                            "runs": [r.to_dict() for r in self.runs]}, indent=0)
 
@@ -217,37 +231,49 @@ class FreeTable:
         if not isinstance(d, dict) or "rows" not in d or "runs" not in d:
             raise ValueError("not a free-base table (expected an object with rows and runs)")
         return cls([Table1Row(**r) for r in d["rows"]], [FreeRun.from_dict(r) for r in d["runs"]],
-                   [int(s) for s in d["seeds"]], str(d["policy"]), d.get("elapsed_s"))
+                   [int(s) for s in d["seeds"]], str(d["policy"]), d.get("elapsed_s"),
+                   d.get("record_s"))
 
 
 def _free_job(args) -> tuple[list[Table1Row], list[FreeRun]]:
-    motion, seed, leg, legs, noises, seeds, a2i_run = args
+    motion, seed, leg, legs, noises, seeds, a2i_run, record_s = args
     if motion == "a2i":
         run, health = a2i_run(leg)
         rows = [r for s in seeds for r in score_run(run, motion, [leg], noises, s)]
         return rows, [FreeRun(motion, leg, None, health)]
-    run, health = run_motion_free(_make_motion(motion, seed, leg),
+    scored = legs if leg is None else (leg,)
+    duration = max(record_s[g] for g in scored)
+    run, health = run_motion_free(_make_motion(motion, seed, leg, duration),
                                   lifted_leg=leg if motion == "wave" else None)
-    return (score_run(run, motion, legs if leg is None else [leg], noises, seed),
+    return (score_run(run, motion, scored, noises, seed, record_s),
             [FreeRun(motion, leg, seed, health)])
 
 
-def run_table1_free(a2i_run, seeds=(0, 1, 2), legs=LEGS, noises=PAPER_GYRO_NOISE_DEG,
-                    workers=None, progress=None) -> tuple[list[Table1Row], list[FreeRun]]:
+def run_table1_free(a2i_run, record_s, seeds=(0, 1, 2), legs=LEGS,
+                    noises=PAPER_GYRO_NOISE_DEG, workers=None,
+                    progress=None) -> tuple[list[Table1Row], list[FreeRun]]:
     """Rows and run health of the free-base study (see the module docstring).
 
     a2i_run: picklable ``leg -> (MotionRun, RunHealth)`` executing the A2I calibration of
     ``leg`` (run once per leg; its mountings come from each seed as for the other motions).
+    record_s: s, the length of each leg's A2I record (its excitation phase, ramps included), a
+    number or {leg: s}: walk, spin and wave are scored over records that long, so that every
+    motion of a leg is judged on as much data.
     Same legs, noise levels, seeds, pipelines and scoring as :func:`run_table1`.
     workers: processes (None: all cores). progress(done, total).
     """
     legs, noises, seeds = tuple(legs), tuple(noises), tuple(seeds)
-    jobs = [("a2i", None, leg, legs, noises, seeds, a2i_run) for leg in legs]
+    if not isinstance(record_s, dict):
+        record_s = dict.fromkeys(legs, record_s)
+    record_s = {g: float(record_s[g]) for g in legs}
+    if not all(np.isfinite(v) and v > 0 for v in record_s.values()):
+        raise ValueError(f"record lengths must be positive seconds, got {record_s}")
+    jobs = [("a2i", None, leg, legs, noises, seeds, a2i_run, record_s) for leg in legs]
     for seed in seeds:
         for motion in ("walk", "spin"):
-            jobs.append((motion, seed, None, legs, noises, seeds, None))
+            jobs.append((motion, seed, None, legs, noises, seeds, None, record_s))
         for leg in legs:
-            jobs.append(("wave", seed, leg, legs, noises, seeds, None))
+            jobs.append(("wave", seed, leg, legs, noises, seeds, None, record_s))
     rows: list[Table1Row] = []
     runs: list[FreeRun] = []
     workers = workers or os.cpu_count() or 1
@@ -395,7 +421,9 @@ def render_markdown(rows: list[Table1Row], seeds, elapsed_s: float | None = None
         "on the motion's prescribed trajectory (walk: trot with body sway; spin: yawing at "
         "0.5 rad/s; wave and A²I: still base). The A²I motion is the anti-noise excitation "
         "(`calib.excitation`, κ(Σ_FF) = 1 planned), played by joint PD (kp 60, kd 2) with "
-        "velocity feed-forward; CN below is of the *executed* motion. The free-base table, "
+        "velocity feed-forward; CN below is of the *executed* motion. Every motion is scored "
+        f"on a record of the same length, {held_record_s():g} s (the A²I plan's, ramps "
+        "included): the motions are compared on as much data. The free-base table, "
         "with A²I executed by the tripod policy, is the last section (`a2i-calib bench "
         "--policy`) when it has been run."),
         "",
@@ -454,6 +482,16 @@ def _verdicts(rows: list[Table1Row]) -> list[str]:
     return out
 
 
+def _record_sentence(record_s: dict[str, float] | None) -> str:
+    if not record_s:
+        return ""
+    lengths = sorted(set(record_s.values()))
+    shown = (f"{lengths[0]:g} s" if len(lengths) == 1 else
+             ", ".join(f"{g} {v:g} s" for g, v in record_s.items()))
+    return ("Every motion of a leg is scored on a record as long as the leg's A²I excitation "
+            f"(ramps included): {shown}.")
+
+
 def render_free_section(table: FreeTable) -> str:
     """The free-base section of the page (markdown, level-2 heading first)."""
     rows = table.rows
@@ -483,7 +521,7 @@ def render_free_section(table: FreeTable) -> str:
          "gaits' joint trajectories played open-loop (PD kp 60, kd 2, velocity feed-forward) "
          "after 1 s of standing. *wave*: the naive single-foot waving: from the stand pose, "
          "the leg is lifted (1 s blend) and waved with the wave motion's joint trajectory, no "
-         "balance controller."),
+         "balance controller. " + _record_sentence(table.record_s)),
         "",
         (f"**Did the policy's A²I stay upright?** {len(pol)} policy runs: max tilt "
          f"{tilt:.1f}°; the lifted foot touched the floor during hold or excitation in "

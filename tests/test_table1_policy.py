@@ -25,6 +25,7 @@ from sim.table1 import (
     Table1Row,
     beats_paper_a2i,
     render_page,
+    run_table1_free,
     score_run,
 )
 
@@ -116,6 +117,23 @@ def test_open_loop_walk_on_the_floor(walk_run):
     _check_foot_truth(run)
     rows = score_run(run, "walk", ["RR"], [0.006], 1)
     assert len(rows) == 2 and all(np.isfinite(r.re_euler_deg) for r in rows)
+
+
+def test_motions_are_scored_on_records_of_one_length(walk_run):
+    run = walk_run[0]
+    head = run.head(2.0)
+    assert head.t[-1] - head.t[0] == pytest.approx(2.0, abs=1e-9)
+    assert head.foot_omega.shape == (4, len(head.t), 3) and head.q.shape == (len(head.t), 12)
+    np.testing.assert_array_equal(head.base_gyro, run.base_gyro[:len(head.t)])
+    with pytest.raises(ValueError):
+        run.head(0.0)
+    # a leg scored on its record length: exactly the rows of the cropped run
+    cut = score_run(run, "walk", ["FL", "RR"], [0.03], 0, record_s={"FL": 3.5, "RR": 4.0})
+    assert cut[:2] == score_run(run.head(3.5), "walk", ["FL"], [0.03], 0)
+    assert cut[2:] == score_run(run.head(4.0), "walk", ["RR"], [0.03], 0)
+    assert cut[0] != score_run(run, "walk", ["FL"], [0.03], 0)[0]
+    with pytest.raises(ValueError, match="positive"):
+        run_table1_free(None, {"FL": 0.0}, legs=["FL"])
 
 
 def test_naive_wave_watches_the_lifted_foot():
