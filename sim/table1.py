@@ -132,24 +132,23 @@ def score_run(run: MotionRun, motion: str, legs, noises, seed: int,
     """Score every (leg, noise, pipeline) calibration from one simulated motion.
     record_s: {leg: s}, score that leg on the first s of the record (None: all of it)."""
     rows = []
-    whole = run
     for leg in legs:
-        run = whole if record_s is None else whole.head(record_s[leg])
+        rec = run if record_s is None else run.head(record_s[leg])
         kin = LegKinematics.from_urdf(leg=leg)
-        q, dq = run.leg_joints(leg)
+        q, dq = rec.leg_joints(leg)
         omega_rel = kin.foot_angular_velocity(q, dq)
-        omega_abs = kin.foot_angular_velocity(q, dq, run.base_gyro)
+        omega_abs = kin.foot_angular_velocity(q, dq, rec.base_gyro)
         for noise in noises:
             mount = random_mounting(_mounting_seed(seed, leg), gyro_noise_deg=noise,
                                     rate=IMU_RATE)
-            imu = run.foot_imu(leg, mount)
+            imu = rec.foot_imu(leg, mount)
             for pipeline in PIPELINES:
                 omega, cfg = (omega_rel, _PAPER) if pipeline == "paper" else (omega_abs, _UNGATED)
-                sol = solve(run.t, omega, imu.stamps, imu.gyro, cfg)
+                sol = solve(rec.t, omega, imu.stamps, imu.gyro, cfg)
                 gates_pass = True
                 if pipeline == "ours":
                     try:
-                        solve(run.t, omega, imu.stamps, imu.gyro, SolverConfig.paper_gates())
+                        solve(rec.t, omega, imu.stamps, imu.gyro, SolverConfig.paper_gates())
                     except CalibrationRefused:
                         gates_pass = False
                 rows.append(Table1Row(
@@ -265,6 +264,9 @@ def run_table1_free(a2i_run, record_s, seeds=(0, 1, 2), legs=LEGS,
     legs, noises, seeds = tuple(legs), tuple(noises), tuple(seeds)
     if not isinstance(record_s, dict):
         record_s = dict.fromkeys(legs, record_s)
+    missing = [g for g in legs if g not in record_s]
+    if missing:
+        raise ValueError(f"no record length for {', '.join(missing)}")
     record_s = {g: float(record_s[g]) for g in legs}
     if not all(np.isfinite(v) and v > 0 for v in record_s.values()):
         raise ValueError(f"record lengths must be positive seconds, got {record_s}")

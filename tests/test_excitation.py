@@ -233,7 +233,7 @@ def test_other_settings_still_reach_the_target():
         assert p.period == pytest.approx(8 * cfg.t_r)
         assert p.f == pytest.approx(np.pi / (4 * cfg.t_r))
         assert p.duration == cfg.duration == 2 * cfg.ramp + cfg.periods * 8 * cfg.t_r
-        assert p.steady_window == (cfg.ramp, cfg.duration - cfg.ramp)
+        assert p.steady_window == pytest.approx((cfg.ramp, cfg.duration - cfg.ramp))
         _, _, dq = p.sample(500.0)
         assert np.all(np.abs(dq) <= VELOCITY_LIMIT * cfg.velocity_fraction)
 

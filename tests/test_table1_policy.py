@@ -134,6 +134,8 @@ def test_motions_are_scored_on_records_of_one_length(walk_run):
     assert cut[0] != score_run(run, "walk", ["FL"], [0.03], 0)[0]
     with pytest.raises(ValueError, match="positive"):
         run_table1_free(None, {"FL": 0.0}, legs=["FL"])
+    with pytest.raises(ValueError, match="no record length for RR"):
+        run_table1_free(None, {"FL": 14.8}, legs=["FL", "RR"])
 
 
 def test_naive_wave_watches_the_lifted_foot():
