@@ -10,7 +10,8 @@ For each policy and randomisation setting (``full``, ``nominal``, or groups of
 * the action's answer to the observation noise alone: RMS over joints and steps of
   pi(clean + delta) - pi(clean), delta drawn from the training's noise for one group of
   observation terms at a time (gyro, gravity, joint positions, joint velocities) and for all
-  (actions are clipped to +-1; one unit is 0.1 rad of target per 20 ms step).
+  (actions are clipped to +-1; one unit is 0.1 rad of target per 20 ms step). A policy that
+  sees a history of frames gets the clean history, each frame with its own noise draw.
 
   .venv/bin/python bench/bench_policy_noise.py policies/tripod_go2_v7.onnx [OTHER.onnx ...]
       [--episodes 32] [--legs FL,RL] [--settings full,latency,latency+obs_noise,nominal]
@@ -27,6 +28,7 @@ import numpy as np
 
 from calib.joints import check_leg
 from deploy.lift_schedule import PHASES, LiftSchedule
+from deploy.observation import OBS_SIZE, ObservationHistory, history_length
 from policy_train.config import DR_GROUPS, TrainConfig
 from policy_train.env import noise_amplitude
 from policy_train.evaluate import evaluation_env
@@ -62,24 +64,27 @@ def diagnose(onnx_path: Path, legs, episodes: int, setting: str, seed: int = 5) 
     amp = noise_amplitude(meta["observation"]["terms"],
                           TrainConfig.from_dict(meta["train_config"]).env.dr)
     sl = term_slices(env.obs_terms)
+    frames = history_length(meta["observation"])
+    clean_hist = ObservationHistory(frames, OBS_SIZE, (env.N,))  # evaluation episodes never reset
     rng = np.random.default_rng(seed)
     excite = PHASES.index("excite")
     n_steps = int(np.ceil(float(sched.total(legs[0])) / env.dt))
     rates, phases, answer = [], [], {k: [] for k in [*NOISE_GROUPS, "all"]}
     obs = env.observations()
+    clean_hist.push(obs["critic"][:, :OBS_SIZE])
     for k in range(n_steps):
         ob, _, _, _ = env.step(policy(obs["policy"]))
         obs = ob
         rates.append(env.ang_vel_b.copy())
         phases.append(env.phase.copy())
+        clean = clean_hist.push(obs["critic"][:, :OBS_SIZE]).reshape(env.N, frames, OBS_SIZE)
         if k % 5 == 0 and (env.phase == excite).any():
-            clean = obs["critic"][:, :49]
-            base = policy(clean)
+            base = policy(clean.reshape(env.N, -1))
             for g, out in answer.items():
-                s = slice(0, 49) if g == "all" else sl[NOISE_GROUPS[g]]
+                s = slice(0, OBS_SIZE) if g == "all" else sl[NOISE_GROUPS[g]]
                 x = clean.copy()
-                x[:, s] += rng.uniform(-1, 1, x[:, s].shape) * amp[s]
-                out.append(policy(x) - base)
+                x[..., s] += rng.uniform(-1, 1, x[..., s].shape) * amp[s]
+                out.append(policy(x.reshape(env.N, -1)) - base)
     rates, phases = np.array(rates), np.array(phases)
     # the steps every episode spends in the excitation, and the episodes that stayed there
     steps = np.flatnonzero((phases == excite).sum(1) > 0.9 * env.N)

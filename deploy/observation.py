@@ -13,6 +13,11 @@ direction in the base frame), ``joint_pos`` (12, rad, SDK order, offset = the de
 previous step), ``commands`` (3, base angular-velocity command, base frame, rad/s),
 ``lift_command`` (1, 0 none, else the metadata's ``lift_command`` value of the leg).
 
+A policy may see the last ``history`` such vectors, newest first, concatenated
+(:class:`ObservationHistory`; the metadata's ``observation.history``, 1 when absent): the
+paper's policy sees one, a distilled one (``docs/policy-training.md``, v8) a few, so that it
+can tell the sensor noise from the motion.
+
 A term whose ``source`` is ``"zero"`` is zero-filled whatever the signals hold: the tripod
 policy is trained without a base linear velocity (the Go2 does not measure it; see
 ``docs/policy-training.md``), so deploy needs nothing but LowState.
@@ -29,11 +34,13 @@ import numpy as np
 
 __all__ = [
     "OBS_SIZE",
+    "ObservationHistory",
     "TERM_NAMES",
     "TERM_SIZES",
     "build_observation",
     "check_terms",
     "default_terms",
+    "history_length",
     "projected_gravity",
 ]
 
@@ -164,3 +171,50 @@ def projected_gravity(quat_wxyz) -> np.ndarray:
     w, x, y, z = np.moveaxis(q / n, -1, 0)
     # third row of R (world z in base coordinates), negated
     return -np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)
+
+
+def history_length(observation: Mapping) -> int:
+    """Frames the policy sees (the metadata ``observation`` object's ``history``, default 1);
+    ValueError unless ``size`` is that many 49-value frames."""
+    h = observation.get("history", 1)
+    if isinstance(h, bool) or not isinstance(h, int) or h < 1:
+        raise ValueError(f"observation history must be a positive integer, got {h!r}")
+    frame = sum(TERM_SIZES[t["name"]] for t in observation["terms"])
+    if int(observation.get("size", frame * h)) != frame * h:
+        raise ValueError(f"observation size {observation.get('size')} is not {h} frames of "
+                         f"{frame}")
+    return h
+
+
+class ObservationHistory:
+    """The last ``length`` observation frames, newest first, as the policy's input.
+
+    Batched over ``batch`` (a shape; ``()`` on board). A frame pushed for a batch element
+    that is fresh (just constructed, or named in :meth:`reset`) fills its whole history, so a
+    policy starts as if it had stood still in that state: no zeros it never saw in training.
+    """
+
+    def __init__(self, length: int, frame_size: int, batch: tuple[int, ...] = ()):
+        if length < 1:
+            raise ValueError(f"history length must be >= 1, got {length}")
+        self.length, self.frame_size = int(length), int(frame_size)
+        self.frames = np.zeros((*batch, self.length, self.frame_size), dtype=np.float32)
+        self.fresh = np.ones(batch, dtype=bool)
+
+    def reset(self, index=...) -> None:
+        """Mark batch elements (all by default) fresh: their next frame fills the history."""
+        self.fresh[index] = True
+
+    def push(self, frame: np.ndarray) -> np.ndarray:
+        """Add the newest frame(s) (*batch, frame_size); return the policy input
+        (*batch, length * frame_size) float32, newest frame first."""
+        f = np.asarray(frame, dtype=np.float32)
+        if f.shape != self.frames.shape[:-2] + (self.frame_size,):
+            raise ValueError(f"frame must have shape {self.frames.shape[:-2] + (self.frame_size,)}"
+                             f", got {f.shape}")
+        self.frames[..., 1:, :] = self.frames[..., :-1, :]
+        self.frames[..., 0, :] = f
+        if np.any(self.fresh):
+            self.frames[self.fresh] = f[self.fresh][..., None, :]
+            self.fresh[...] = False
+        return self.frames.reshape(*self.frames.shape[:-2], -1).copy()

@@ -18,7 +18,7 @@ import numpy as np
 
 from calib.joints import LEGS, SDK_JOINT_NAMES, check_leg
 from deploy.lift_schedule import LiftSchedule
-from deploy.observation import TERM_SIZES, check_terms
+from deploy.observation import TERM_SIZES, ObservationHistory, check_terms, history_length
 
 __all__ = ["PolicyMeta", "PolicyRunner", "default_policy_path", "policies_for_legs"]
 
@@ -108,9 +108,7 @@ class PolicyMeta:
         if not isinstance(obs, Mapping) or "terms" not in obs:
             raise ValueError("policy metadata lacks observation.terms")
         check_terms(obs["terms"])
-        size = sum(TERM_SIZES[t["name"]] for t in obs["terms"])
-        if int(obs.get("size", size)) != size:
-            raise ValueError(f"observation.size {obs.get('size')} != sum of term sizes {size}")
+        history_length(obs)  # ValueError unless size is whole frames of the terms
         lc = d.get("lift_command") or {}
         lift = {}
         for leg in ("none", "FL", "FR", "RL", "RR"):
@@ -138,7 +136,18 @@ class PolicyMeta:
 
     @property
     def obs_size(self) -> int:
+        """Values in one observation frame (49)."""
         return sum(TERM_SIZES[t["name"]] for t in self.observation["terms"])
+
+    @property
+    def history(self) -> int:
+        """Frames the network sees, newest first (``observation.history``, 1 when absent)."""
+        return history_length(self.observation)
+
+    @property
+    def input_size(self) -> int:
+        """The network's input width: ``history`` frames of ``obs_size``."""
+        return self.obs_size * self.history
 
 
 def default_policy_path(search: list[Path] | None = None, leg: str | None = None) -> Path:
@@ -198,9 +207,12 @@ def policies_for_legs(legs, path: str | os.PathLike | None = None,
 class PolicyRunner:
     """ONNX Runtime on one thread, batch 1: ``act(obs (49,)) -> raw actions (12,)`` float32.
 
+    A policy that sees several frames (``PolicyMeta.history``) gets the newest ``act`` was
+    given, newest first (:class:`deploy.observation.ObservationHistory`), as in training.
     Targets follow the metadata's ``delta_target`` rule (``step``): ``target = prev + scale *
     clip(a, -c, c)``, clamped to the soft limits; ``reset(q)`` sets the previous target to the
-    joint positions when the policy (re)starts and zeroes the previous actions.
+    joint positions when the policy (re)starts, zeroes the previous actions and starts a new
+    history (the next frame fills it, as a training episode's first frame does).
     """
 
     def __init__(self, meta: PolicyMeta):
@@ -221,16 +233,18 @@ class PolicyRunner:
             raise ValueError(f"{meta.onnx_path}: expected input 'obs' and output 'actions', got "
                              f"{sorted(ins)} -> {sorted(outs)}")
         width = ins["obs"].shape[-1]
-        if isinstance(width, int) and width != meta.obs_size:
-            raise ValueError(f"{meta.onnx_path}: obs width {width} != metadata {meta.obs_size}")
+        if isinstance(width, int) and width != meta.input_size:
+            raise ValueError(f"{meta.onnx_path}: obs width {width} != metadata {meta.input_size} "
+                             f"({meta.history} frame(s) of {meta.obs_size})")
         self.meta = meta
-        self._in = np.zeros((1, meta.obs_size), np.float32)
+        self._in = np.zeros((1, meta.input_size), np.float32)
+        self.frames = ObservationHistory(meta.history, meta.obs_size)
         self.prev_actions = np.zeros(12, np.float32)
         self.target = meta.default_pose.copy()
 
     def act(self, obs: np.ndarray) -> np.ndarray:
-        """Raw network output (12,) float32 for one observation (49,)."""
-        self._in[0] = obs
+        """Raw network output (12,) float32 for the newest observation frame (49,)."""
+        self._in[0] = self.frames.push(obs)
         out = self.session.run(["actions"], {"obs": self._in})[0]
         a = np.asarray(out, np.float32).reshape(-1)
         if a.shape != (12,):
@@ -240,6 +254,7 @@ class PolicyRunner:
     def reset(self, q: np.ndarray) -> None:
         self.target = np.asarray(q, dtype=float).copy()
         self.prev_actions = np.zeros(12, np.float32)
+        self.frames.reset()
 
     def step(self, actions: np.ndarray) -> np.ndarray:
         """Apply raw ``actions`` to the target (delta_target rule); returns the new target."""

@@ -117,6 +117,50 @@ def _tripod(a) -> int:
     return 0
 
 
+def _distill(a) -> int:
+    import torch
+
+    from policy_train.distill import DistillConfig, Distiller
+
+    resume = None
+    if a.resume:
+        resume = torch.load(a.resume, weights_only=False, map_location="cpu")
+        if "distill" not in resume:
+            raise SystemExit(f"{a.resume}: not a distillation checkpoint")
+        saved = {k: tuple(v) if isinstance(v, list) else v for k, v in resume["distill"].items()
+                 if k in DistillConfig.__dataclass_fields__}
+        cfg = DistillConfig(**saved)
+    else:
+        cfg = DistillConfig(teacher=a.teacher)
+    for arg in ("history", "num_envs", "learning_rate", "save_interval"):
+        if getattr(a, arg) is not None:
+            setattr(cfg, arg, getattr(a, arg))
+    if a.lift_leg_weights is not None:
+        cfg.lift_leg_weights = a.lift_leg_weights
+    if resume is not None and cfg.history != int(resume["distill"]["history"]):
+        raise SystemExit("--history cannot change on --resume")
+    run_dir = Path(a.run_dir or f"runs/distill_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
+    t0 = time.time()
+    try:
+        d = Distiller(cfg, run_dir, seed=a.seed, threads=a.threads or 0,
+                      log=lambda s: print(s, flush=True), resume=resume)
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"a2i-train distill: {e}") from None
+    print(f"distill: teacher {cfg.teacher}, {cfg.history} frames, {cfg.num_envs} envs, run dir "
+          f"{run_dir}, setup {time.time() - t0:.1f} s"
+          + (f", resumed at iteration {d.iteration}" if resume is not None else ""), flush=True)
+    ckpt = d.learn(a.iterations, a.max_minutes)
+    print(f"saved {ckpt}", flush=True)
+    if a.export:
+        from policy_train.export import export_policy
+
+        # the teacher's mirrored legs are the student's too (DistillConfig.lift_leg_weights)
+        mirror = list(d.meta.get("mirrored_legs") or {}) or None
+        onnx_path, json_path = export_policy(ckpt, a.export, mirror_legs=mirror)
+        print(f"exported {onnx_path} and {json_path}", flush=True)
+    return 0
+
+
 def _export(a) -> int:
     from policy_train.export import export_policy, train_state_path
 
@@ -339,6 +383,24 @@ def main(argv: list[str] | None = None) -> int:
                         "pays when the exported graph mirrors the other side's legs anyway")
     t.add_argument("--run-dir", default=None)
     t.add_argument("--export", default=None, help="after training, export to this path stem")
+    d = sub.add_parser("distill", help="distil a policy into one that sees a history of noisy "
+                       "observations (DAgger; docs/policy-training.md)")
+    d.add_argument("--teacher", default="policies/tripod_go2_v7.onnx",
+                   help="the exported policy to imitate (its .json beside it)")
+    d.add_argument("--history", type=_positive, default=None, help="frames the student sees (5)")
+    d.add_argument("--iterations", type=_positive, default=400)
+    d.add_argument("--num-envs", type=_positive, default=None)
+    d.add_argument("--learning-rate", type=_number(1e-7, 1.0, "must be in [1e-7, 1)"),
+                   default=None)
+    d.add_argument("--lift-leg-weights", type=_weights, default=None, metavar="FL,FR,RL,RR")
+    d.add_argument("--save-interval", type=_positive, default=None)
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--threads", type=_positive, default=None,
+                   help="simulation and update threads (default: all CPUs)")
+    d.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this")
+    d.add_argument("--resume", default=None, metavar="CKPT", help="a distillation checkpoint")
+    d.add_argument("--run-dir", default=None)
+    d.add_argument("--export", default=None, help="after training, export to this path stem")
     e = sub.add_parser("export", help="export a checkpoint to ONNX + JSON")
     e.add_argument("checkpoint", nargs="+",
                    help="a checkpoint, or several of one run: their actor weights averaged")
@@ -408,7 +470,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.cmd in ("eval", "transfer") and a.onnx and not Path(a.onnx).with_suffix(".json").is_file():
         p.error(f"{Path(a.onnx).with_suffix('.json')}: no policy metadata beside the ONNX file")
     try:
-        return {"tripod": _tripod, "export": _export, "eval": _eval, "transfer": _transfer,
+        return {"tripod": _tripod, "distill": _distill, "export": _export, "eval": _eval,
+                "transfer": _transfer,
                 "compare": _compare, "pack": _pack}[a.cmd](a)
     except (OSError, ValueError) as e:
         print(f"a2i-train {a.cmd}: error: {str(e).splitlines()[0] if str(e) else e!r}",

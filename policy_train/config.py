@@ -135,6 +135,9 @@ class EnvConfig:
     action_scale: float = 0.1
     action_clip: float = 1.0
     obs_clip: float = 100.0
+    # observation frames the policy sees, newest first (deploy.observation.ObservationHistory):
+    # 1 is the paper's policy (v1-v7); the distilled v8 sees a few (docs/policy-training.md)
+    obs_history: int = 1
     soft_limit_margin: float = 0.05   # rad inside the URDF limits
     p_no_lift: float = 0.15           # probability that a command lifts no leg
     p_yaw_command: float = 0.5        # with no lift: probability of a yaw-rate command

@@ -31,7 +31,14 @@ from calib.joints import (
     sdk_to_model,
 )
 from deploy.lift_schedule import PHASES, LiftSchedule, blend_accelerations, blend_targets
-from deploy.observation import TERM_SIZES, build_observation, default_terms, projected_gravity
+from deploy.observation import (
+    OBS_SIZE,
+    TERM_SIZES,
+    ObservationHistory,
+    build_observation,
+    default_terms,
+    projected_gravity,
+)
 from policy_train.config import OBS_NOISE, EnvConfig
 from policy_train.model import TrainModel
 from policy_train.rewards import compute_rewards
@@ -175,7 +182,12 @@ class TripodEnv:
             cfg.physics_dt, cfg.kp, cfg.kd, model_file=cfg.model_file)
         m = self.tm.model
         self.N = N = cfg.num_envs
-        self.num_envs, self.num_actions, self.num_obs = N, 12, 49
+        if cfg.obs_history < 1:
+            raise ValueError("obs_history must be >= 1")
+        self.num_envs, self.num_actions, self.num_obs = N, 12, OBS_SIZE * cfg.obs_history
+        # the policy's frames, newest first; None for the paper's single frame
+        self.obs_hist = ObservationHistory(cfg.obs_history, OBS_SIZE, (N,)) \
+            if cfg.obs_history > 1 else None
         self.dt = cfg.physics_dt * cfg.decimation
         self.max_episode_length = round(cfg.episode_s / self.dt)
         self.resample_steps = round(cfg.command_resample_s / self.dt)
@@ -292,6 +304,8 @@ class TripodEnv:
         if len(ids) == 0:
             return
         dr, n, rng = self.cfg.dr, len(ids), self.rng
+        if self.obs_hist is not None:  # a new episode's first frame fills its history
+            self.obs_hist.reset(ids)
         self.batch.reset(ids, stage=mujoco.mjtStage.mjSTAGE_NONE)
         q = self.default_pose + (rng.uniform(-1, 1, (n, 12)) * dr.init_joint_noise
                                  if dr.enabled else 0.0)
@@ -583,8 +597,13 @@ class TripodEnv:
         return noise_amplitude(self.obs_terms, self.cfg.dr)
 
     def observations(self) -> dict[str, np.ndarray]:
-        """{"policy": (N, 49) float32, "critic": (N, 49 + PRIV_SIZE) float32}."""
+        """{"policy": (N, 49 * obs_history) float32, "critic": (N, 49 + PRIV_SIZE) float32}.
+
+        The critic sees the newest frame without noise. With ``obs_history`` > 1 each call
+        pushes a frame into the policy's history: call it once per step (``step`` does)."""
         pol = build_observation(self.obs_terms, self.signals(True), clip=self.cfg.obs_clip)
+        if self.obs_hist is not None:
+            pol = self.obs_hist.push(pol)
         clean = build_observation(self.obs_terms, self.signals(False), clip=self.cfg.obs_clip)
         cfg = self.cfg
         tph = np.where(self.lift_leg >= 0, self.lift_t - np.concatenate(

@@ -1,6 +1,7 @@
 """Export a training checkpoint to the deploy contract: ``<name>.onnx`` + ``<name>.json``.
 
-The ONNX holds the actor's mean only (no sampling), input ``obs`` float32 [batch, 49], output
+The ONNX holds the actor's mean only (no sampling), input ``obs`` float32 [batch, 49 x the
+observation history (1 frame for the PPO policies)], output
 ``actions`` float32 [batch, 12], dynamic batch, one file (no external data); it is checked with
 onnxruntime against torch on random inputs before anything is written. The JSON follows
 ``docs/policy-format.md`` (schema_version 1). Both files are written atomically.
@@ -44,7 +45,7 @@ def _actor_from_checkpoint(d: dict, cfg: TrainConfig) -> torch.nn.Module:
     from rsl_rl.modules import MLP
 
     sd = d["actor_state_dict"]
-    mlp = MLP(OBS_SIZE, 12, list(cfg.ppo.actor_hidden), "elu")
+    mlp = MLP(OBS_SIZE * cfg.env.obs_history, 12, list(cfg.ppo.actor_hidden), "elu")
     mlp.load_state_dict({k[len("mlp."):]: v for k, v in sd.items() if k.startswith("mlp.")})
     if any(k.startswith("obs_normalizer.") for k in sd):
         raise ValueError("actor observation normalisation is not supported by this exporter")
@@ -126,8 +127,8 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
         "action": {"size": 12, "scale": e.action_scale, "clip": e.action_clip,
                    "mode": "delta_target"},
         "soft_limits": {"lower": fl(lo), "upper": fl(hi)},
-        "observation": {"size": OBS_SIZE, "clip": e.obs_clip,
-                        "terms": default_terms(default, "zero")},
+        "observation": {"size": OBS_SIZE * e.obs_history, "history": e.obs_history,
+                        "clip": e.obs_clip, "terms": default_terms(default, "zero")},
         "lift_command": {k: int(v) for k, v in LIFT_VALUES.items()},
         "lift_schedule": sched.to_metadata(),
         "lift_command_after_done": 0,
@@ -162,15 +163,21 @@ def export_policy(checkpoint, out_stem: str | Path,
     meta = build_metadata(name, cfg, int(d.get("seed", 0)), int(d["iter"]), legs)
     if "averaged_iterations" in d:
         meta["averaged_iterations"] = d["averaged_iterations"]
+    if "distill" in d:  # a distilled student plays its teacher's schedule (policy_train.distill)
+        meta["lift_schedule"] = d["distill"]["lift_schedule"]
+        meta["distilled_from"] = {k: d["distill"].get(k) for k in (
+            "teacher_name", "teacher_commit", "history")}
     if mirror_legs:
         pairs = {g: mirror_source(g) for g in mirror_legs}
-        actor = MirroredLegsActor(actor, meta["observation"]["terms"], pairs).eval()
+        actor = MirroredLegsActor(actor, meta["observation"]["terms"], pairs,
+                                  cfg.env.obs_history).eval()
         meta["mirrored_legs"] = pairs
     onnx_path = out_stem.with_name(name + ".onnx")
     json_path = out_stem.with_name(name + ".json")
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = onnx_path.with_name(f".{name}.export.onnx")
-    dummy = torch.zeros(2, OBS_SIZE)
+    n_in = OBS_SIZE * cfg.env.obs_history
+    dummy = torch.zeros(2, n_in)
     torch.onnx.export(actor, (dummy,), str(tmp), input_names=["obs"], output_names=["actions"],
                       dynamic_shapes={"obs": {0: torch.export.Dim("batch", min=1, max=65536)}},
                       opset_version=18, external_data=False, dynamo=True)
@@ -183,7 +190,7 @@ def export_policy(checkpoint, out_stem: str | Path,
     sess = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
     rng = np.random.default_rng(0)
     for n in (1, 7, 256):
-        x = rng.normal(0, 1, (n, OBS_SIZE)).astype(np.float32)
+        x = rng.normal(0, 1, (n, n_in)).astype(np.float32)
         y = sess.run(["actions"], {"obs": x})[0]
         with torch.no_grad():
             ref = actor(torch.from_numpy(x)).numpy()

@@ -75,7 +75,7 @@ class Mirror(torch.nn.Module):
     friction, phase, timers, contact flags of the whole body). A module (constant buffers, no
     in-place ops) so that an exported ONNX graph can hold it."""
 
-    def __init__(self, terms, lift_scale: float | None = None):
+    def __init__(self, terms, lift_scale: float | None = None, frames: int = 1):
         super().__init__()
         idx, sign, off = [], [], 0
         lift_at = None
@@ -94,29 +94,37 @@ class Mirror(torch.nn.Module):
                     raise ValueError("lift_command needs its observation scale")
                 lift_at = off
             off += size
-        self.size = off
-        self.lift_at = lift_at
+        if frames < 1:
+            raise ValueError(f"frames must be >= 1, got {frames}")
+        # a history of frames (newest first) mirrors frame by frame
+        index = np.concatenate([np.concatenate(idx) + f * off for f in range(frames)])
+        self.size = off * frames
+        self.lift_at = lift_at  # in the newest frame
         self.lift_scale = float(lift_scale or 1.0)
-        self.register_buffer("index", torch.from_numpy(np.concatenate(idx)))
-        self.register_buffer("sign", torch.from_numpy(np.concatenate(sign)).float())
+        self.register_buffer("index", torch.from_numpy(index))
+        self.register_buffer("sign", torch.from_numpy(np.tile(np.concatenate(sign), frames)).float())
         self.register_buffer("values", torch.from_numpy(_leg_values_map()).float())
-        col = torch.zeros(off, dtype=torch.bool)
+        col = torch.zeros(self.size, dtype=torch.bool)
         if lift_at is not None:
-            col[lift_at] = True
+            col[lift_at + off * np.arange(frames)] = True
         self.register_buffer("lift_column", col)
 
+    def _values_of(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.round(x / self.lift_scale).long().clamp(0, self.values.shape[0] - 1)
+
     def lift_value(self, x: torch.Tensor) -> torch.Tensor:
-        """The lift-command value (0 none, 1-4 legs) of observations (..., size), long."""
-        v = torch.round(x[..., self.lift_at] / self.lift_scale).long()
-        return v.clamp(0, self.values.shape[0] - 1)
+        """The lift-command value (0 none, 1-4 legs) of observations (..., size), long: the
+        newest frame's."""
+        return self._values_of(x[..., self.lift_at])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Mirror (..., size) observations."""
         y = x[..., self.index] * self.sign.to(x.dtype)
         if self.lift_at is None:
             return y
-        lv = (self.values[self.lift_value(x)] * self.lift_scale).to(x.dtype)
-        return torch.where(self.lift_column, lv.unsqueeze(-1), y)
+        # every column read as a lift value; only the lift columns keep it
+        lv = (self.values[self._values_of(x)] * self.lift_scale).to(x.dtype)
+        return torch.where(self.lift_column, lv, y)
 
 
 class ActionMirror(torch.nn.Module):
@@ -136,17 +144,18 @@ class MirroredLegsActor(torch.nn.Module):
     """An actor whose lifts of the legs in ``mirror_legs`` (leg -> source leg on the other
     side) are played as the mirror image of its own lifts of the source leg:
     ``a = M_a(actor(M_o(obs)))`` when the lift command names such a leg, ``actor(obs)``
-    otherwise. Valid because the robot and the task are left-right symmetric
-    (``tests/test_symmetry.py``); used when PPO learnt one side better than the other."""
+    otherwise (the newest frame's command, over a history of ``frames`` frames). Valid because
+    the robot and the task are left-right symmetric (``tests/test_symmetry.py``); used when PPO
+    learnt one side better than the other."""
 
-    def __init__(self, actor: torch.nn.Module, obs_terms, mirror_legs: dict):
+    def __init__(self, actor: torch.nn.Module, obs_terms, mirror_legs: dict, frames: int = 1):
         super().__init__()
         for leg, src in mirror_legs.items():
             if _SWAP.get(leg) != src:
                 raise ValueError(f"{leg} can only mirror {_SWAP.get(leg, '?')}, not {src}")
         terms, scale = policy_terms(obs_terms)
         self.actor = actor
-        self.obs_mirror = Mirror(terms, scale)
+        self.obs_mirror = Mirror(terms, scale, frames)
         if self.obs_mirror.lift_at is None:
             raise ValueError("the observation has no lift_command term")
         self.action_mirror = ActionMirror()

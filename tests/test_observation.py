@@ -91,3 +91,56 @@ def test_env_observation_equals_builder(tiny_env):
     np.testing.assert_array_equal(obs, ref)
     noisy = env.observations()["policy"]
     assert noisy.shape == (env.N, 49) and not np.array_equal(noisy, ref)
+
+
+def test_history_fills_on_a_fresh_start_and_shifts_newest_first():
+    from deploy.observation import ObservationHistory
+
+    h = ObservationHistory(3, 2, (2,))
+    np.testing.assert_array_equal(h.push([[1, 1], [2, 2]]), [[1, 1] * 3, [2, 2] * 3])
+    np.testing.assert_array_equal(h.push([[3, 3], [4, 4]]), [[3, 3, 1, 1, 1, 1],
+                                                             [4, 4, 2, 2, 2, 2]])
+    h.reset(1)  # element 1 starts again: its next frame fills its history; 0 goes on
+    np.testing.assert_array_equal(h.push([[5, 5], [6, 6]]), [[5, 5, 3, 3, 1, 1], [6] * 6])
+    one = ObservationHistory(2, 2)  # on board: no batch
+    one.push([1, 2])
+    np.testing.assert_array_equal(one.push([3, 4]), [3, 4, 1, 2])
+    with pytest.raises(ValueError, match="shape"):
+        one.push([1, 2, 3])
+    with pytest.raises(ValueError, match=">= 1"):
+        ObservationHistory(0, 2)
+
+
+def test_history_length_checks_the_size():
+    from deploy.observation import history_length
+
+    terms = default_terms(default_crouch("sdk"))
+    assert history_length({"size": 49, "terms": terms}) == 1
+    assert history_length({"size": 245, "history": 5, "terms": terms}) == 5
+    for bad in ({"size": 49, "history": 5}, {"size": 245, "history": 0},
+                {"size": 98, "history": 2.0}, {"size": 245, "history": True}):
+        with pytest.raises(ValueError, match="history|frames"):
+            history_length({**bad, "terms": terms})
+
+
+def test_env_history_is_the_newest_frames():
+    """With obs_history 3 the policy sees its last three noisy frames, newest first: frame k
+    of a step is frame k - 1 of the step before; a reset episode starts with its first frame
+    repeated."""
+    from policy_train.config import EnvConfig
+    from policy_train.env import TripodEnv
+
+    env = TripodEnv(EnvConfig(num_envs=3, plans_per_leg=1, seed=4, threads=1, obs_history=3))
+    assert env.num_obs == 147
+    first = env.observations()["policy"].reshape(3, 3, 49)
+    np.testing.assert_array_equal(first[:, 1], first[:, 0])
+    np.testing.assert_array_equal(first[:, 2], first[:, 0])
+    ob, *_ = env.step(np.zeros((3, 12)))
+    frames = ob["policy"].reshape(3, 3, 49)
+    np.testing.assert_array_equal(frames[:, 1:], first[:, :2])
+    assert not np.array_equal(frames[:, 0], frames[:, 1])  # new noise, new state
+    env.reset_idx(np.array([1]))
+    env._compute_state()
+    again = env.observations()["policy"].reshape(3, 3, 49)
+    np.testing.assert_array_equal(again[1, 1:], again[1, :1].repeat(2, 0))
+    np.testing.assert_array_equal(again[0, 1:], frames[0, :2])

@@ -116,3 +116,27 @@ def test_old_configs_train_without_mirror():
     del d["ppo"]["mirror_augmentation"]
     assert TrainConfig.from_dict(d).ppo.mirror_augmentation is False
     assert TrainConfig().ppo.mirror_augmentation is True
+
+
+def test_mirror_of_a_history_mirrors_each_frame(env):
+    """A history of frames (newest first) mirrors frame by frame, each frame's lift command
+    by its own value; the mirrored-legs actor decides on the newest frame's command."""
+    from policy_train.symmetry import Mirror, MirroredLegsActor, policy_terms
+
+    terms, scale = policy_terms(env.obs_terms)
+    one, three = Mirror(terms, scale), Mirror(terms, scale, frames=3)
+    rng = np.random.default_rng(5)
+    x = torch.from_numpy(rng.normal(size=(4, 3, 49)).astype(np.float32))
+    x[:, :, 48] = torch.tensor([LIFT_VALUES["FL"], LIFT_VALUES["FL"], 0.0]) * scale
+    got = three(x.reshape(4, 147)).reshape(4, 3, 49)
+    for f in range(3):
+        torch.testing.assert_close(got[:, f], one(x[:, f]))
+    assert torch.all(got[:, 0, 48] == LIFT_VALUES["FR"] * scale) and torch.all(got[:, 2, 48] == 0)
+    torch.manual_seed(0)
+    net = torch.nn.Linear(147, 12)
+    actor = MirroredLegsActor(net, env.obs_terms, {"FR": "FL"}, frames=3)
+    fr = x.clone()
+    fr[:, 0, 48] = LIFT_VALUES["FR"] * scale  # the newest frame names FR: mirrored
+    torch.testing.assert_close(actor(fr.reshape(4, 147)),
+                               actor.action_mirror(net(three(fr.reshape(4, 147)))))
+    torch.testing.assert_close(actor(x.reshape(4, 147)), net(x.reshape(4, 147)))

@@ -1,0 +1,112 @@
+"""policy_train.distill: the student starts as the committed teacher (v7), learns from the
+teacher's actions on clean frames, checkpoints, resumes and exports a history policy that the
+on-board runner stacks frames for."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from policy_train.distill import DistillConfig, Distiller
+
+TEACHER = "policies/tripod_go2_v7.onnx"
+
+
+@pytest.fixture(scope="module")
+def distiller(tmp_path_factory):
+    cfg = DistillConfig(teacher=TEACHER, history=3, num_envs=6, steps_per_iteration=4,
+                        buffer_samples=200, updates_per_iteration=3, batch_size=16)
+    return Distiller(cfg, tmp_path_factory.mktemp("distill"), seed=2, threads=1)
+
+
+def test_student_starts_as_the_teacher(distiller):
+    """On the lifts the teacher's network makes itself (FL, RL) the untrained student is the
+    teacher on the newest frame, whatever the older frames hold."""
+    d = distiller
+    assert d.env.num_obs == 147
+    rng = np.random.default_rng(0)
+    x = rng.normal(0, 0.5, (20, 147)).astype(np.float32)
+    scale = d.meta["observation"]["terms"][-1]["scale"]
+    x[:, 48] = rng.choice([0, d.meta["lift_command"]["FL"], d.meta["lift_command"]["RL"]],
+                          20) * scale
+    with torch.no_grad():
+        student = d.student(torch.from_numpy(x)).numpy()
+    teacher = d.teacher.run(None, {d.teacher_in: x[:, :49]})[0]
+    np.testing.assert_allclose(student, teacher, atol=1e-5)
+    assert set(np.flatnonzero(d.env.leg_p)) == {0, 2}  # FL and RL (model order FL FR RL RR)
+
+
+def test_labels_are_the_teachers_actions_on_clean_frames_and_learning_fits_them(distiller):
+    d = distiller
+    obs = d.env.observations()
+    clean = obs["critic"][:, :49]
+    _, stats = d._collect(obs)
+    assert d.buf_n == 6 * 4 and stats["episodes_ended"] >= 0
+    # the first step's samples: the noisy history in, the teacher's action on the clean frame
+    np.testing.assert_array_equal(d.buf_x[:6], obs["policy"])
+    np.testing.assert_allclose(d.buf_y[:6], d.teacher.run(None, {d.teacher_in: clean})[0],
+                               atol=1e-6)
+    assert not np.allclose(d.buf_y[:6], d.teacher.run(None, {d.teacher_in: d.buf_x[:6, :49]})[0],
+                           atol=1e-3)  # not its action on the noisy frame
+    first = d._update()
+    for _ in range(30):
+        loss = d._update()
+    assert np.isfinite(first) and loss < 0.5 * first
+
+
+def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
+    from deploy.policy import PolicyMeta, PolicyRunner
+
+    run = tmp_path / "run"
+    base = [sys.executable, "-m", "policy_train.cli", "distill", "--num-envs", "4",
+            "--threads", "1", "--run-dir", str(run)]
+    p = subprocess.run(base + ["--history", "2", "--iterations", "2", "--save-interval", "1",
+                               "--export", str(tmp_path / "pol")],
+                       capture_output=True, text=True, timeout=300, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "it     1" in p.stdout and "it     2" in p.stdout and "loss" in p.stdout
+    assert (run / "model_1.pt").exists() and (run / "model_2.pt").exists()
+    meta = json.loads((tmp_path / "pol.json").read_text())
+    teacher = json.loads(open(TEACHER.replace(".onnx", ".json")).read())
+    assert meta["observation"]["history"] == 2 and meta["observation"]["size"] == 98
+    assert meta["mirrored_legs"] == teacher["mirrored_legs"]
+    assert meta["lift_schedule"] == teacher["lift_schedule"]
+    assert meta["distilled_from"]["teacher_name"] == "tripod_go2_v7.onnx"
+    # on board: the runner feeds the network its last two frames, newest first
+    runner = PolicyRunner(PolicyMeta.load(tmp_path / "pol.json"))
+    sess = ort.InferenceSession(str(tmp_path / "pol.onnx"), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(1)
+    f = rng.normal(0, 0.3, (3, 49)).astype(np.float32)
+    runner.reset(runner.meta.default_pose)
+    for k, want_in in enumerate((np.r_[f[0], f[0]], np.r_[f[1], f[0]], np.r_[f[2], f[1]])):
+        want = sess.run(None, {"obs": want_in[None]})[0][0]
+        np.testing.assert_allclose(runner.act(f[k]), want, atol=1e-6)
+    runner.reset(runner.meta.default_pose)  # a restart begins a new history
+    np.testing.assert_allclose(runner.act(f[2]), sess.run(None, {"obs": np.r_[f[2], f[2]][None]})[0][0],
+                               atol=1e-6)
+    # resume continues the run's iterations; its history cannot change
+    p = subprocess.run(base + ["--resume", str(run / "model_2.pt"), "--iterations", "1"],
+                       capture_output=True, text=True, timeout=300, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert "resumed at iteration 2" in p.stdout and "it     3" in p.stdout
+    p = subprocess.run(base + ["--resume", str(run / "model_2.pt"), "--history", "4"],
+                       capture_output=True, text=True, timeout=300, check=False)
+    assert p.returncode != 0 and "--history" in p.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize(("args", "hint"), [
+    (["--teacher", "nope.onnx"], "nope"),
+    (["--history", "0"], "--history"),
+    (["--num-envs", "x"], "--num-envs"),
+])
+def test_bad_inputs_exit_nonzero_with_one_line(tmp_path, args, hint):
+    p = subprocess.run([sys.executable, "-m", "policy_train.cli", "distill", "--iterations", "1",
+                        "--run-dir", str(tmp_path / "r"), *args],
+                       capture_output=True, text=True, timeout=120, check=False)
+    assert p.returncode != 0
+    lines = p.stderr.strip().splitlines()
+    assert hint in lines[-1] and "Traceback" not in p.stderr
