@@ -34,9 +34,9 @@ import numpy as np
 
 __all__ = [
     "OBS_SIZE",
-    "ObservationHistory",
     "TERM_NAMES",
     "TERM_SIZES",
+    "ObservationHistory",
     "build_observation",
     "check_terms",
     "default_terms",

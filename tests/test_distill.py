@@ -5,6 +5,7 @@ on-board runner stacks frames for."""
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
@@ -71,7 +72,7 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     assert "it     1" in p.stdout and "it     2" in p.stdout and "loss" in p.stdout
     assert (run / "model_1.pt").exists() and (run / "model_2.pt").exists()
     meta = json.loads((tmp_path / "pol.json").read_text())
-    teacher = json.loads(open(TEACHER.replace(".onnx", ".json")).read())
+    teacher = json.loads(Path(TEACHER).with_suffix(".json").read_text())
     assert meta["observation"]["history"] == 2 and meta["observation"]["size"] == 98
     assert meta["mirrored_legs"] == teacher["mirrored_legs"]
     assert meta["lift_schedule"] == teacher["lift_schedule"]
