@@ -14,7 +14,7 @@ import torch
 
 from policy_train.distill import DistillConfig, Distiller
 
-TEACHER = "policies/tripod_go2_v7.onnx"
+TEACHER = str(Path(__file__).resolve().parents[1] / "policies" / "tripod_go2_v7.onnx")
 
 
 @pytest.fixture(scope="module")
