@@ -137,6 +137,7 @@ def _distill(a) -> int:
             setattr(cfg, arg, getattr(a, arg))
     if a.lift_leg_weights is not None:
         cfg.lift_leg_weights = a.lift_leg_weights
+    cfg.dr = {**cfg.dr, **dict(a.dr)}
     if resume is not None and cfg.history != int(resume["distill"]["history"]):
         raise SystemExit("--history cannot change on --resume")
     run_dir = Path(a.run_dir or f"runs/distill_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
@@ -394,6 +395,8 @@ def main(argv: list[str] | None = None) -> int:
                    default=None)
     d.add_argument("--lift-leg-weights", type=_weights, default=None, metavar="FL,FR,RL,RR")
     d.add_argument("--save-interval", type=_positive, default=None)
+    d.add_argument("--dr", type=_dr_setting, action="append", default=[], metavar="FIELD=VALUE",
+                   help="a DRConfig field over the teacher's, e.g. noise_scale=0,1 (repeatable)")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--threads", type=_positive, default=None,
                    help="simulation and update threads (default: all CPUs)")

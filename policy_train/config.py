@@ -77,6 +77,10 @@ class DRConfig:
     noise_gravity: float = 0.05
     noise_joint_pos: float = 0.01                           # rad
     noise_joint_vel: float = 1.5                            # rad/s
+    # every noise amplitude above times this, drawn per episode (drawn only when the range is
+    # not (1, 1), so that configurations without it keep their draws): a distilled student
+    # also sees quiet sensors (docs/policy-training.md, v8)
+    noise_scale: tuple[float, float] = (1.0, 1.0)
 
     def without(self, *groups: str) -> DRConfig:
         """A copy with the named groups of ``DR_GROUPS`` at their nominal values."""

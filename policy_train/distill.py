@@ -25,7 +25,7 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -52,6 +52,8 @@ class DistillConfig:
     # and in the student's: export with --mirror-legs FR,RR)
     lift_leg_weights: tuple[float, float, float, float] = (3.0, 0.0, 2.0, 0.0)  # FL FR RL RR
     save_interval: int = 25
+    # DRConfig fields over the teacher's (a2i-train distill --dr), e.g. noise_scale (0, 1)
+    dr: dict = field(default_factory=dict)
 
 
 def student_from_teacher(teacher_mlp: dict, history: int, hidden, activation: str = "elu"):
@@ -104,6 +106,10 @@ class Distiller:
         e.model_file = e.plan_pool_file = None
         e.p_excite = 1.0  # phase 2: every lift plays an excitation
         e.lift_leg_weights = tuple(cfg.lift_leg_weights)
+        for k, v in cfg.dr.items():
+            if k not in e.dr.__dataclass_fields__:
+                raise ValueError(f"unknown randomisation field {k!r}")
+            setattr(e.dr, k, tuple(v) if isinstance(v, list) else v)
         sched = self.meta["lift_schedule"]
         e.lift_kp, e.lift_kd = float(sched["kp"]), float(sched["kd"])
         e.lift_feedforward = bool(sched.get("feedforward", False))  # as deploy plays it

@@ -266,6 +266,7 @@ class TripodEnv:
         self.push_timer = z(N)
         self.kp_s, self.kd_s, self.strength = np.ones(N), np.ones(N), np.ones(N)
         self.latency = np.zeros(N, dtype=int)
+        self.noise_scale = np.ones(N)      # times the observation noise (DRConfig.noise_scale)
         self.friction = np.ones(N)
         self.mass_add = z(N)
         self.foot_touch = np.zeros((N, 4), dtype=bool)
@@ -335,6 +336,8 @@ class TripodEnv:
             self.push_timer[ids] = rng.uniform(*dr.push_interval, n)
             if dr.joint_friction[1] > 0:  # drawn only when on: older configs keep their draws
                 self._joint_fric[ids, 6:] = rng.uniform(*dr.joint_friction, (n, 12))
+            if tuple(dr.noise_scale) != (1.0, 1.0):  # likewise
+                self.noise_scale[ids] = rng.uniform(*dr.noise_scale, n)
         else:
             self.kp_s[ids] = self.kd_s[ids] = self.strength[ids] = 1.0
             self.latency[ids] = 0
@@ -579,7 +582,8 @@ class TripodEnv:
         s = {"base_ang_vel": self.ang_vel_b, "projected_gravity": self.gravity_b,
              "joint_pos": self.q, "joint_vel": self.dq}  # joints in model order here
         if noise and dr.enabled:
-            s = {name: s[name] + self.rng.uniform(-1, 1, s[name].shape) * getattr(dr, field)
+            k = self.noise_scale[:, None]
+            s = {name: s[name] + self.rng.uniform(-1, 1, s[name].shape) * getattr(dr, field) * k
                  for name, field in OBS_NOISE}
         return {
             "base_lin_vel": self.lin_vel_b,

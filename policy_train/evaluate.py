@@ -185,7 +185,12 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
             "calf_clearance_mm": [float(1e3 * np.percentile(calf_min[ok], p)) if ok.any()
                                   else float("nan") for p in (50, 10)],
         }
-    result = {"policy": onnx_path.name, "episodes_per_leg": episodes, "seed": seed,
+    try:  # the command as one types it in the repository
+        shown = onnx_path.resolve().relative_to(Path.cwd().resolve()).as_posix()
+    except ValueError:
+        shown = onnx_path.as_posix()
+    result = {"policy": onnx_path.name, "path": shown,
+              "episodes_per_leg": episodes, "seed": seed,
               "domain_randomisation": not nominal, "dr_off": list(dr_off),
               "randomisation": randomisation,
               "armature_kg_m2": [float(x) for x in env.cfg.dr.armature],
@@ -234,6 +239,15 @@ def _counts(items) -> dict[str, int]:
     return dict(Counter(items).most_common())
 
 
+def _training(meta: dict) -> str:
+    """How the network was trained: PPO iterations, or distilled from a teacher."""
+    d = meta.get("distilled_from")
+    if d:
+        return (f"{meta.get('iterations')} DAgger iterations distilling `{d.get('teacher_name')}` "
+                f"into a policy that sees its last {d.get('history')} observation frames")
+    return f"{meta.get('iterations')} PPO iterations"
+
+
 def _averaged(meta: dict) -> str:
     its = meta.get("averaged_iterations")
     return f"; the weight average of iterations {', '.join(map(str, its))}" if its else ""
@@ -246,7 +260,7 @@ def _nominal_section(meta: dict) -> str:
     return f"""
 ## Without domain randomisation
 
-`a2i-train eval policies/{n['policy']} --nominal --episodes {n['episodes_per_leg']}`: nominal
+`a2i-train eval {n.get('path', 'policies/' + n['policy'])} --nominal --episodes {n['episodes_per_leg']}`: nominal
 MuJoCo model, gains and masses, friction 0.8, no latency, pushes or observation noise (the
 situation of the deploy mock); the same calibration motion.
 
@@ -326,8 +340,8 @@ def _report(r: dict, meta: dict, table: str) -> str:
     return f"""# Tripod policy evaluation
 
 Policy `{r['policy']}` (commit `{meta.get('commit')}`, seed {meta.get('seed')},
-{meta.get('iterations')} PPO iterations{_averaged(meta)}). Produced by
-`a2i-train eval policies/{r['policy']} --episodes {r['episodes_per_leg']}` (seed {r['seed']}):
+{_training(meta)}{_averaged(meta)}). Produced by
+`a2i-train eval {r.get('path', 'policies/' + r['policy'])} --episodes {r['episodes_per_leg']}` (seed {r['seed']}):
 the ONNX through onnxruntime, the JSON's observation terms, action and lift schedule.
 
 Each episode: the standard domain randomisation (`DRConfig`'s defaults, the same for

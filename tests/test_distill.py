@@ -66,11 +66,14 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     base = [sys.executable, "-m", "policy_train.cli", "distill", "--num-envs", "4",
             "--threads", "1", "--run-dir", str(run)]
     p = subprocess.run(base + ["--history", "2", "--iterations", "2", "--save-interval", "1",
-                               "--export", str(tmp_path / "pol")],
+                               "--dr", "noise_scale=0,1", "--export", str(tmp_path / "pol")],
                        capture_output=True, text=True, timeout=300, check=False)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     assert "it     1" in p.stdout and "it     2" in p.stdout and "loss" in p.stdout
     assert (run / "model_1.pt").exists() and (run / "model_2.pt").exists()
+    ckpt = torch.load(run / "model_2.pt", weights_only=False)
+    assert tuple(ckpt["distill"]["dr"]["noise_scale"]) == (0.0, 1.0)
+    assert tuple(ckpt["train_config"]["env"]["dr"]["noise_scale"]) == (0.0, 1.0)
     meta = json.loads((tmp_path / "pol.json").read_text())
     teacher = json.loads(Path(TEACHER).with_suffix(".json").read_text())
     assert meta["observation"]["history"] == 2 and meta["observation"]["size"] == 98
@@ -103,6 +106,7 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     (["--teacher", "nope.onnx"], "nope"),
     (["--history", "0"], "--history"),
     (["--num-envs", "x"], "--num-envs"),
+    (["--dr", "nope=1"], "--dr"),
 ])
 def test_bad_inputs_exit_nonzero_with_one_line(tmp_path, args, hint):
     p = subprocess.run([sys.executable, "-m", "policy_train.cli", "distill", "--iterations", "1",

@@ -333,3 +333,19 @@ def test_noise_amplitude_is_the_envs_observation_noise():
     np.testing.assert_allclose(amp[21:33], 1.5 * 0.05)  # joint velocities +-1.5 rad/s
     env.cfg.dr.enabled = False
     assert not env.observation_noise_amplitude().any()
+
+
+def test_noise_scale_quiets_the_sensors_per_episode_and_is_drawn_only_when_set():
+    """DRConfig.noise_scale multiplies every observation noise by a factor drawn per episode;
+    at (0, 0) the policy sees the clean frame, and left at (1, 1) nothing extra is drawn (the
+    committed evaluations keep their draws)."""
+    quiet = EnvConfig(num_envs=3, plans_per_leg=1, seed=6, threads=1)
+    quiet.dr.noise_scale = (0.0, 0.0)
+    env = TripodEnv(quiet)
+    ob = env.observations()
+    np.testing.assert_array_equal(ob["policy"], ob["critic"][:, :49])
+    plain, spread = (EnvConfig(num_envs=3, plans_per_leg=1, seed=6, threads=1) for _ in range(2))
+    spread.dr.noise_scale = (0.2, 0.9)
+    a, b = TripodEnv(plain), TripodEnv(spread)
+    assert np.all(a.noise_scale == 1.0)
+    assert np.all((b.noise_scale >= 0.2) & (b.noise_scale <= 0.9))
