@@ -155,9 +155,7 @@ def _distill(a) -> int:
     if a.export:
         from policy_train.export import export_policy
 
-        # the teacher's mirrored legs are the student's too (DistillConfig.lift_leg_weights)
-        mirror = list(d.meta.get("mirrored_legs") or {}) or None
-        onnx_path, json_path = export_policy(ckpt, a.export, mirror_legs=mirror)
+        onnx_path, json_path = export_policy(ckpt, a.export)  # mirrored as the teacher
         print(f"exported {onnx_path} and {json_path}", flush=True)
     return 0
 
@@ -388,7 +386,7 @@ def main(argv: list[str] | None = None) -> int:
                        "observations (DAgger; docs/policy-training.md)")
     d.add_argument("--teacher", default="policies/tripod_go2_v7.onnx",
                    help="the exported policy to imitate (its .json beside it)")
-    d.add_argument("--history", type=_positive, default=None, help="frames the student sees (5)")
+    d.add_argument("--history", type=_positive, default=None, help="frames the student sees (10)")
     d.add_argument("--iterations", type=_positive, default=400)
     d.add_argument("--num-envs", type=_positive, default=None)
     d.add_argument("--learning-rate", type=_number(1e-7, 1.0, "must be in [1e-7, 1)"),

@@ -14,7 +14,7 @@ teacher's weights, the older frames' zero. The environment is the teacher's trai
 environment (its JSON's ``train_config``: rewards unused, its randomisation, reference starts,
 contact terminations, its plan pool) with every lift an excitation, lifting the legs the
 teacher's network lifts itself (its graph plays the others as their mirror images; so does the
-student's, exported with ``--mirror-legs``).
+student's: ``a2i-train export`` mirrors the teacher's mirrored legs unless told otherwise).
 
 Checkpoints (``runs/<run>/model_<it>.pt``) have the PPO checkpoints' actor layout, so
 ``a2i-train export`` writes the deploy contract from them (``observation.history``).
@@ -41,15 +41,16 @@ class DistillConfig:
     """DAgger settings. Samples are (noisy history, teacher's action on the clean frame)."""
 
     teacher: str = "policies/tripod_go2_v7.onnx"
-    history: int = 5                  # frames the student sees (0.1 s at 50 Hz)
+    history: int = 10                 # frames the student sees (0.2 s at 50 Hz; v8, v9)
     num_envs: int = 512
     steps_per_iteration: int = 50     # policy steps of every env between updates (1 s)
-    buffer_samples: int = 1_000_000   # newest samples kept (first in, first out)
+    # newest samples kept (first in, first out): 4 x (49 x history + 12) bytes each, 2 GB at 10
+    buffer_samples: int = 1_000_000
     updates_per_iteration: int = 25   # Adam steps per iteration
     batch_size: int = 4096
     learning_rate: float = 3e-4
     # the teacher's own lifts (v7: FL and RL; FR and RR are their mirror images in its graph,
-    # and in the student's: export with --mirror-legs FR,RR)
+    # and in the student's export)
     lift_leg_weights: tuple[float, float, float, float] = (3.0, 0.0, 2.0, 0.0)  # FL FR RL RR
     save_interval: int = 25
     # DRConfig fields over the teacher's (a2i-train distill --dr), e.g. noise_scale (0, 1)
@@ -188,7 +189,9 @@ class Distiller:
             "history": self.history,
             "distill": {**asdict(self.cfg), "teacher_name": Path(self.cfg.teacher).name,
                         "teacher_commit": self.meta.get("commit"),
-                        "lift_schedule": self.meta["lift_schedule"]},
+                        "lift_schedule": self.meta["lift_schedule"],
+                        # the student lifts only the teacher's own legs: export mirrors the rest
+                        "mirrored_legs": self.meta.get("mirrored_legs") or {}},
         }
 
     def save(self) -> Path:

@@ -147,7 +147,7 @@ def export_policy(checkpoint, out_stem: str | Path,
     ``averaged_iterations``); legs: the JSON's ``legs`` (the legs deploy may lift with it;
     None: all four). mirror_legs: legs whose lifts the graph plays as the mirror image of the
     opposite side's (:class:`policy_train.symmetry.MirroredLegsActor`; the JSON's
-    ``mirrored_legs``)."""
+    ``mirrored_legs``); None on a distillation checkpoint: its teacher's."""
     import onnx
     import onnxruntime as ort
 
@@ -165,6 +165,8 @@ def export_policy(checkpoint, out_stem: str | Path,
         meta["averaged_iterations"] = d["averaged_iterations"]
     if "distill" in d:  # a distilled student plays its teacher's schedule (policy_train.distill)
         meta["lift_schedule"] = d["distill"]["lift_schedule"]
+        if mirror_legs is None:  # and its legs as the teacher did (v8, v9's predate the key)
+            mirror_legs = list(d["distill"].get("mirrored_legs") or {}) or None
         meta["distilled_from"] = {k: d["distill"].get(k) for k in (
             "teacher_name", "teacher_commit", "history")}
     if mirror_legs:

@@ -182,7 +182,8 @@ def policy_terms(obs_terms) -> tuple[list[tuple[str, int]], float | None]:
 class _Mirrors:
     def __init__(self, env):
         terms, scale = policy_terms(env.obs_terms)
-        self.policy = Mirror(terms, scale)
+        # a policy that sees a history mirrors frame by frame; the critic sees one frame
+        self.policy = Mirror(terms, scale, env.cfg.obs_history)
         self.critic = Mirror(terms + list(PRIV_TERMS), scale)
         self.action = ActionMirror()
 

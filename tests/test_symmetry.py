@@ -140,3 +140,22 @@ def test_mirror_of_a_history_mirrors_each_frame(env):
     torch.testing.assert_close(actor(fr.reshape(4, 147)),
                                actor.action_mirror(net(three(fr.reshape(4, 147)))))
     torch.testing.assert_close(actor(x.reshape(4, 147)), net(x.reshape(4, 147)))
+
+
+def test_augmentation_of_a_history_env_mirrors_every_frame():
+    """PPO's mirror augmentation on an env whose policy sees a history mirrors each frame of
+    the policy's input and the critic's single frame."""
+    from policy_train.symmetry import Mirror, policy_terms
+
+    cfg = EnvConfig(num_envs=2, plans_per_leg=1, threads=1, p_reference_start=0.0,
+                    obs_history=3)
+    hist = TripodEnv(cfg)
+    ob = hist.observations()
+    td = TensorDict({k: torch.from_numpy(v) for k, v in ob.items()}, batch_size=[2])
+    out, _ = mirror_augmentation(hist, td, None)
+    terms, scale = policy_terms(hist.obs_terms)
+    one = Mirror(terms, scale)
+    got = out["policy"][2:].reshape(2, 3, 49)
+    for f in range(3):
+        torch.testing.assert_close(got[:, f], one(td["policy"].reshape(2, 3, 49)[:, f]))
+    assert out["critic"].shape == (4, td["critic"].shape[1])
