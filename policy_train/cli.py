@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 from policy_train.config import DR_GROUPS, RANDOMISATIONS, DRConfig
+from policy_train.distill import LABELS
 
 __all__ = ["main"]
 
@@ -132,7 +133,7 @@ def _distill(a) -> int:
         cfg = DistillConfig(**saved)
     else:
         cfg = DistillConfig(teacher=a.teacher)
-    for arg in ("history", "num_envs", "learning_rate", "save_interval"):
+    for arg in ("history", "num_envs", "learning_rate", "save_interval", "labels"):
         if getattr(a, arg) is not None:
             setattr(cfg, arg, getattr(a, arg))
     if a.lift_leg_weights is not None:
@@ -395,6 +396,11 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--save-interval", type=_positive, default=None)
     d.add_argument("--dr", type=_dr_setting, action="append", default=[], metavar="FIELD=VALUE",
                    help="a DRConfig field over the teacher's, e.g. noise_scale=0,1 (repeatable)")
+    d.add_argument("--labels", choices=LABELS, default=None,
+                   help="the teacher's action on the clean frame of the state the student acts "
+                        "in (now, v8 and v9) or of the state at which its action reaches the "
+                        "motors, the actuation latency later (actuation); default: now, or the "
+                        "checkpoint's with --resume")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--threads", type=_positive, default=None,
                    help="simulation and update threads (default: all CPUs)")

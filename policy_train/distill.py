@@ -33,7 +33,7 @@ import numpy as np
 from calib.atomic import write_bytes_atomic
 from deploy.observation import OBS_SIZE
 
-__all__ = ["DistillConfig", "Distiller", "student_from_teacher"]
+__all__ = ["LABELS", "DistillConfig", "Distiller", "student_from_teacher"]
 
 
 @dataclass
@@ -55,6 +55,18 @@ class DistillConfig:
     save_interval: int = 25
     # DRConfig fields over the teacher's (a2i-train distill --dr), e.g. noise_scale (0, 1)
     dr: dict = field(default_factory=dict)
+    # which clean frame the teacher labels: "now", the state the student acts in (v8, v9);
+    # "actuation", the state at which the student's action reaches the motors, its env's
+    # actuation latency later (LABELS)
+    labels: str = "now"
+
+
+LABELS = ("now", "actuation")
+"""``DistillConfig.labels``. With "actuation" the label is what the teacher, acting with no
+latency, would command at the moment the student's command takes effect: the state there is
+set by the previous command alone, so the label does not depend on the action it labels, and a
+student that learns it (reading the latency from its history) plays the teacher's latency-free
+closed loop."""
 
 
 def student_from_teacher(teacher_mlp: dict, history: int, hidden, activation: str = "elu"):
@@ -88,6 +100,8 @@ class Distiller:
         from policy_train.env import PlanPool, TripodEnv
         from policy_train.warm_start import policy_start
 
+        if cfg.labels not in LABELS:
+            raise ValueError(f"labels must be one of {', '.join(LABELS)}, not {cfg.labels!r}")
         self.cfg, self.log, self.seed = cfg, log, seed
         self.run_dir = Path(run_dir)
         n_threads = threads or max(1, os.cpu_count() or 1)
@@ -120,6 +134,8 @@ class Distiller:
                         np.random.default_rng(int(start["seed"]) + 1), e.ground_clearance)
         self.env = TripodEnv(e, plan_pool=pool)
         self.env.obs_terms = self.meta["observation"]["terms"]  # the teacher's, as on board
+        if cfg.labels == "actuation":
+            self.env.actuation_frames = np.zeros((e.num_envs, OBS_SIZE), dtype=np.float32)
         self.student = student_from_teacher(start["actor_mlp"], cfg.history,
                                             tc.ppo.actor_hidden)
         self.opt = torch.optim.Adam(self.student.parameters(), lr=cfg.learning_rate)
@@ -153,11 +169,13 @@ class Distiller:
         lengths = []
         for _ in range(self.cfg.steps_per_iteration):
             x = obs["policy"]
-            label = self.teacher.run(None, {self.teacher_in: obs["critic"][:, :OBS_SIZE]})[0]
-            self._store(x, label)
+            clean = obs["critic"][:, :OBS_SIZE]
             with torch.no_grad():
                 act = self.student(torch.from_numpy(x)).numpy()
             obs, _, dones, extras = self.env.step(act)
+            if self.cfg.labels == "actuation":
+                clean = self.env.actuation_frames
+            self._store(x, self.teacher.run(None, {self.teacher_in: clean})[0])
             ended += int(dones.sum())
             fell += int(extras["terminated"].sum())
             if "episode_length" in extras:

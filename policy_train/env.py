@@ -277,6 +277,9 @@ class TripodEnv:
         self.lift_q_des = np.full((N, 3), np.nan)
         self.episode_sums: dict[str, np.ndarray] = {}
         self.p_excite = self.cfg.p_excite
+        # (N, 49) clean frames at the moment each env's newest action reaches its motors, kept
+        # by step() once set to an array (distillation's actuation labels); None: not kept
+        self.actuation_frames: np.ndarray | None = None
 
     def _randomize_masses(self) -> None:
         dr = self.cfg.dr
@@ -480,6 +483,8 @@ class TripodEnv:
         tm = self.tm
         last = None
         for s in range(cfg.decimation):
+            if self.actuation_frames is not None:
+                self._capture_actuation_frames(s)
             # the newest target issued at least `latency` physics steps ago
             back = np.maximum(0, -((s - self.latency) // cfg.decimation))
             ctrl = self.target.copy()
@@ -539,6 +544,8 @@ class TripodEnv:
             if len(p):
                 self.qvel[p, 0:2] += self.rng.uniform(-cfg.dr.push_vel, cfg.dr.push_vel, (len(p), 2))
                 self.push_timer[p] = self.rng.uniform(*cfg.dr.push_interval, len(p))
+        if self.actuation_frames is not None:
+            self._capture_actuation_frames(cfg.decimation)
         self._compute_state()
         rew, terms, terminated = compute_rewards(self)
         self.last_qvel[:] = self.qvel[:, 6:18]
@@ -585,16 +592,39 @@ class TripodEnv:
             k = self.noise_scale[:, None]
             s = {name: s[name] + self.rng.uniform(-1, 1, s[name].shape) * getattr(dr, field) * k
                  for name, field in OBS_NOISE}
+        return self._signals(self.lin_vel_b, s, self.actions, np.arange(self.N))
+
+    def _signals(self, lin_vel_b, s: dict, previous_actions, ids) -> dict[str, np.ndarray]:
+        """Deploy's signal names and SDK order from model-order joint signals ``s`` of envs
+        ``ids``."""
         return {
-            "base_lin_vel": self.lin_vel_b,
+            "base_lin_vel": lin_vel_b,
             "base_ang_vel": s["base_ang_vel"],
             "projected_gravity": s["projected_gravity"],
             "joint_pos": model_to_sdk(s["joint_pos"]),
             "joint_vel": model_to_sdk(s["joint_vel"]),
-            "previous_actions": self.actions,
-            "commands": self.commands,
-            "lift_command": self.lift_command_value(),
+            "previous_actions": previous_actions,
+            "commands": self.commands[ids],
+            "lift_command": self.lift_command_value()[ids],
         }
+
+    def clean_frame(self, ids: np.ndarray, previous_actions: np.ndarray) -> np.ndarray:
+        """(len(ids), 49) noise-free policy frame of the physics state as it is now, which
+        may be part-way through a policy step (:meth:`step` fills ``actuation_frames`` so)."""
+        qp, qv = self.qpos[ids], self.qvel[ids]
+        s = {"base_ang_vel": qv[:, 3:6], "projected_gravity": projected_gravity(qp[:, 3:7]),
+             "joint_pos": qp[:, 7:19], "joint_vel": qv[:, 6:18]}
+        sig = self._signals(_quat_rotate_inv(qp[:, 3:7], qv[:, 0:3]), s, previous_actions, ids)
+        return build_observation(self.obs_terms, sig, clip=self.cfg.obs_clip)
+
+    def _capture_actuation_frames(self, s: int) -> None:
+        """Clean frames of the envs whose new target reaches the motors at substep ``s`` (their
+        actuation latency; ``s == decimation``: at the step's end, where latencies past one
+        policy step are taken too), seen with the previous action as the last one issued."""
+        last = s == self.cfg.decimation
+        ids = np.flatnonzero(self.latency >= s if last else self.latency == s)
+        if len(ids):
+            self.actuation_frames[ids] = self.clean_frame(ids, self.prev_actions[ids])
 
     def observation_noise_amplitude(self) -> np.ndarray:
         """(49,) half-width of this env's policy-observation noise (:func:`noise_amplitude`)."""

@@ -59,6 +59,26 @@ def test_labels_are_the_teachers_actions_on_clean_frames_and_learning_fits_them(
     assert np.isfinite(first) and loss < 0.5 * first
 
 
+def test_actuation_labels_are_the_teachers_actions_where_the_action_takes_effect(tmp_path):
+    """labels="actuation": each sample's label is the teacher's action on the clean frame of
+    the state at which the student's action reaches the motors; with no latency that is the
+    frame the student acted on."""
+    cfg = DistillConfig(teacher=TEACHER, history=2, num_envs=4, steps_per_iteration=1,
+                        buffer_samples=20, updates_per_iteration=1, batch_size=4,
+                        labels="actuation")
+    d = Distiller(cfg, tmp_path, seed=3, threads=1)
+    d.env.latency[:] = [0, 1, 2, 4]
+    obs = d.env.observations()
+    now = d.teacher.run(None, {d.teacher_in: obs["critic"][:, :49]})[0]
+    d._collect(obs)
+    later = d.teacher.run(None, {d.teacher_in: d.env.actuation_frames})[0]
+    np.testing.assert_allclose(d.buf_y[:4], later, atol=1e-6)
+    np.testing.assert_allclose(d.buf_y[0], now[0], atol=1e-6)
+    assert not np.allclose(d.buf_y[3], now[3], atol=1e-3)
+    with pytest.raises(ValueError, match="labels"):
+        Distiller(DistillConfig(teacher=TEACHER, num_envs=2, labels="later"), tmp_path)
+
+
 def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     from deploy.policy import PolicyMeta, PolicyRunner
 
@@ -107,6 +127,7 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     (["--history", "0"], "--history"),
     (["--num-envs", "x"], "--num-envs"),
     (["--dr", "nope=1"], "--dr"),
+    (["--labels", "later"], "--labels"),
 ])
 def test_bad_inputs_exit_nonzero_with_one_line(tmp_path, args, hint):
     p = subprocess.run([sys.executable, "-m", "policy_train.cli", "distill", "--iterations", "1",

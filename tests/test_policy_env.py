@@ -66,6 +66,36 @@ def test_actuation_latency_holds_the_targets_that_many_physics_steps():
         np.testing.assert_array_equal(seen[lat:, i], new[i])
 
 
+def test_actuation_frames_are_the_state_where_the_action_reaches_the_motors():
+    """``actuation_frames``: the clean frame when the step's action takes effect. With no
+    latency it is the frame the action was chosen on; with one policy step of latency it is the
+    next frame (the previous action still the last issued); in between it is a state the action
+    itself cannot have moved, so two different actions meet the same frame."""
+    def run(latency, action):
+        cfg = EnvConfig(num_envs=3, plans_per_leg=1, seed=5, threads=1)
+        cfg.dr.latency_steps = (0, 4)
+        e = TripodEnv(cfg)
+        e.latency[:] = latency
+        e.actuation_frames = np.zeros((3, 49), dtype=np.float32)
+        e.step(np.full((3, 12), 0.3))  # a previous action unlike the next
+        before = e.observations()["critic"][:, :49]
+        after = e.step(np.full((3, 12), action))[0]["critic"][:, :49]
+        return e.actuation_frames.copy(), before, after
+
+    pa = slice(33, 45)  # previous actions
+    frames, before, _ = run(0, 1.0)
+    np.testing.assert_allclose(frames, before, atol=1e-6)
+    frames, before, after = run(4, 1.0)
+    np.testing.assert_allclose(np.delete(frames, pa, 1), np.delete(after, pa, 1), atol=1e-6)
+    np.testing.assert_allclose(frames[:, pa], before[:, pa], atol=1e-6)
+    frames, before, after = run(2, 1.0)
+    other, _, after_other = run(2, -1.0)
+    np.testing.assert_allclose(frames, other, atol=1e-6)
+    assert not np.allclose(after, after_other, atol=1e-3)
+    assert not np.allclose(np.delete(frames, pa, 1), np.delete(before, pa, 1), atol=1e-4)
+    assert not np.allclose(np.delete(frames, pa, 1), np.delete(after, pa, 1), atol=1e-4)
+
+
 def test_lifted_leg_follows_schedule():
     # zero actions let the body sag onto a thigh: keep that episode running here
     e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=4, threads=1,
