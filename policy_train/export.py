@@ -169,6 +169,7 @@ def export_policy(checkpoint, out_stem: str | Path,
             mirror_legs = list(d["distill"].get("mirrored_legs") or {}) or None
         meta["distilled_from"] = {k: d["distill"].get(k) for k in (
             "teacher_name", "teacher_commit", "history")}
+        meta["distilled_from"]["labels"] = d["distill"].get("labels", "now")
     if mirror_legs:
         pairs = {g: mirror_source(g) for g in mirror_legs}
         actor = MirroredLegsActor(actor, meta["observation"]["terms"], pairs,

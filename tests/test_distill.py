@@ -100,6 +100,7 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     assert meta["mirrored_legs"] == teacher["mirrored_legs"]
     assert meta["lift_schedule"] == teacher["lift_schedule"]
     assert meta["distilled_from"]["teacher_name"] == "tripod_go2_v7.onnx"
+    assert meta["distilled_from"]["labels"] == "now"
     # on board: the runner feeds the network its last two frames, newest first
     runner = PolicyRunner(PolicyMeta.load(tmp_path / "pol.json"))
     sess = ort.InferenceSession(str(tmp_path / "pol.onnx"), providers=["CPUExecutionProvider"])
