@@ -145,6 +145,8 @@ class Distiller:
             self.student.load_state_dict({k[len("mlp."):]: v for k, v in
                                           resume["actor_state_dict"].items()})
             self.opt.load_state_dict(resume["optimizer_state_dict"])
+            for group in self.opt.param_groups:  # the state carries the rate it was saved with
+                group["lr"] = cfg.learning_rate
             self.iteration = int(resume["iter"])
             self.history = list(resume.get("history", []))
         n_in = OBS_SIZE * cfg.history

@@ -113,11 +113,16 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     runner.reset(runner.meta.default_pose)  # a restart begins a new history
     np.testing.assert_allclose(runner.act(f[2]), sess.run(None, {"obs": np.r_[f[2], f[2]][None]})[0][0],
                                atol=1e-6)
-    # resume continues the run's iterations; its history cannot change
-    p = subprocess.run(base + ["--resume", str(run / "model_2.pt"), "--iterations", "1"],
+    # resume continues the run's iterations, at the learning rate asked for (the optimiser's
+    # saved state carries the old one); its history cannot change
+    p = subprocess.run(base + ["--resume", str(run / "model_2.pt"), "--iterations", "1",
+                               "--learning-rate", "5e-5"],
                        capture_output=True, text=True, timeout=300, check=False)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     assert "resumed at iteration 2" in p.stdout and "it     3" in p.stdout
+    ckpt = torch.load(run / "model_3.pt", weights_only=False)
+    assert [g["lr"] for g in ckpt["optimizer_state_dict"]["param_groups"]] == [5e-5]
+    assert ckpt["distill"]["learning_rate"] == 5e-5
     p = subprocess.run(base + ["--resume", str(run / "model_2.pt"), "--history", "4"],
                        capture_output=True, text=True, timeout=300, check=False)
     assert p.returncode != 0 and "--history" in p.stderr.strip().splitlines()[-1]
