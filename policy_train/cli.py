@@ -399,9 +399,7 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--labels", choices=LABELS, default=None,
                    help="the teacher's action on the clean frame of the state the student acts "
                         "in (now, v8 and v9) or of the state at which its action reaches the "
-                        "motors, the actuation latency later (actuation); actuation_gains: "
-                        "as actuation, divided by the episode's stiffness (kp scale times motor "
-                        "strength) on the joints the policy drives; default: now, or the "
+                        "motors, the actuation latency later (actuation); default: now, or the "
                         "checkpoint's with --resume")
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--threads", type=_positive, default=None,

@@ -31,7 +31,6 @@ from pathlib import Path
 import numpy as np
 
 from calib.atomic import write_bytes_atomic
-from calib.joints import model_to_sdk
 from deploy.observation import OBS_SIZE
 
 __all__ = ["LABELS", "DistillConfig", "Distiller", "student_from_teacher"]
@@ -62,17 +61,12 @@ class DistillConfig:
     labels: str = "now"
 
 
-LABELS = ("now", "actuation", "actuation_gains")
+LABELS = ("now", "actuation")
 """``DistillConfig.labels``. With "actuation" the label is what the teacher, acting with no
 latency, would command at the moment the student's command takes effect: the state there is
 set by the previous command alone, so the label does not depend on the action it labels, and a
 student that learns it (reading the latency from its history) plays the teacher's latency-free
-closed loop. "actuation_gains" also undoes the episode's PD stiffness: on the joints the
-policy drives, the label is the teacher's action divided by the episode's kp scale times its
-motor strength, so the student's change of target changes the torque as much as the
-teacher's change would with nominal gains (the teacher sees its own previous action). Only
-the change is scaled: the offset already in the target shows in the state the teacher answers,
-as it does for the teacher under any gains."""
+closed loop."""
 
 
 def student_from_teacher(teacher_mlp: dict, history: int, hidden, activation: str = "elu"):
@@ -140,12 +134,8 @@ class Distiller:
                         np.random.default_rng(int(start["seed"]) + 1), e.ground_clearance)
         self.env = TripodEnv(e, plan_pool=pool)
         self.env.obs_terms = self.meta["observation"]["terms"]  # the teacher's, as on board
-        if cfg.labels in ("actuation", "actuation_gains"):
+        if cfg.labels == "actuation":
             self.env.actuation_frames = np.zeros((e.num_envs, OBS_SIZE), dtype=np.float32)
-        self.gains = cfg.labels == "actuation_gains"
-        if self.gains:
-            self.teacher_action = np.zeros((e.num_envs, 12), dtype=np.float32)  # SDK order
-            self.env.frame_previous_actions = self.teacher_action
         self.student = student_from_teacher(start["actor_mlp"], cfg.history,
                                             tc.ppo.actor_hidden)
         self.opt = torch.optim.Adam(self.student.parameters(), lr=cfg.learning_rate)
@@ -184,36 +174,16 @@ class Distiller:
             clean = obs["critic"][:, :OBS_SIZE]
             with torch.no_grad():
                 act = self.student(torch.from_numpy(x)).numpy()
-            lifted = self.env.lift_leg.copy()
             obs, _, dones, extras = self.env.step(act)
-            if self.cfg.labels != "now":
+            if self.cfg.labels == "actuation":
                 clean = self.env.actuation_frames
-            y = self.teacher.run(None, {self.teacher_in: clean})[0]
-            if self.gains:
-                y, keep = self._gain_matched_labels(y, dones, lifted)
-                x, y = x[keep], y[keep]
-            self._store(x, y)
+            self._store(x, self.teacher.run(None, {self.teacher_in: clean})[0])
             ended += int(dones.sum())
             fell += int(extras["terminated"].sum())
             if "episode_length" in extras:
                 lengths.extend(extras["episode_length"] * self.env.dt)
         return obs, {"episodes_ended": ended, "terminated": fell,
                      "mean_episode_length_s": float(np.mean(lengths)) if lengths else None}
-
-    def _gain_matched_labels(self, y: np.ndarray, dones: np.ndarray, lifted: np.ndarray
-                             ) -> tuple[np.ndarray, np.ndarray]:
-        """The labels of one step (SDK order) from the teacher's actions ``y`` on the
-        actuation frames, and which samples to keep: not those of the envs that ended, whose
-        gains are already the next episode's. The joints of a leg under a lift command (its
-        schedule drives them) keep the teacher's action. lifted: (N,) model leg index before
-        the step, -1 none."""
-        e = self.env
-        stiff = np.repeat(e.kp_s * e.strength, 12).reshape(e.N, 12)
-        up = np.flatnonzero(lifted >= 0)
-        stiff[up[:, None], 3 * lifted[up, None] + np.arange(3)] = 1.0
-        self.teacher_action[:] = y
-        self.teacher_action[dones] = e.actions[dones]  # a new episode starts from rest
-        return (y / model_to_sdk(stiff)).astype(np.float32), ~dones
 
     def _update(self) -> float:
         import torch

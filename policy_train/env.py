@@ -280,9 +280,6 @@ class TripodEnv:
         # (N, 49) clean frames at the moment each env's newest action reaches its motors, kept
         # by step() once set to an array (distillation's actuation labels); None: not kept
         self.actuation_frames: np.ndarray | None = None
-        # the previous action those frames show (None: the last one issued; distillation's
-        # gain-matched labels show the teacher its own)
-        self.frame_previous_actions: np.ndarray | None = None
 
     def _randomize_masses(self) -> None:
         dr = self.cfg.dr
@@ -627,9 +624,7 @@ class TripodEnv:
         last = s == self.cfg.decimation
         ids = np.flatnonzero(self.latency >= s if last else self.latency == s)
         if len(ids):
-            prev = self.prev_actions if self.frame_previous_actions is None \
-                else self.frame_previous_actions
-            self.actuation_frames[ids] = self.clean_frame(ids, prev[ids])
+            self.actuation_frames[ids] = self.clean_frame(ids, self.prev_actions[ids])
 
     def observation_noise_amplitude(self) -> np.ndarray:
         """(49,) half-width of this env's policy-observation noise (:func:`noise_amplitude`)."""

@@ -243,11 +243,8 @@ def _training(meta: dict) -> str:
     """How the network was trained: PPO iterations, or distilled from a teacher."""
     d = meta.get("distilled_from")
     if d:
-        when = {"actuation": ", labelled with the teacher's action where the student's "
-                             "reaches the motors",
-                "actuation_gains": ", labelled with the teacher's action where the student's "
-                                   "reaches the motors, divided by the episode's stiffness",
-                }.get(d.get("labels"), "")
+        when = (", labelled with the teacher's action where the student's reaches the motors"
+                if d.get("labels") == "actuation" else "")
         return (f"{meta.get('iterations')} DAgger iterations distilling `{d.get('teacher_name')}` "
                 f"into a policy that sees its last {d.get('history')} observation frames{when}")
     return f"{meta.get('iterations')} PPO iterations"

@@ -12,7 +12,6 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from calib.joints import model_to_sdk
 from policy_train.distill import DistillConfig, Distiller
 
 TEACHER = str(Path(__file__).resolve().parents[1] / "policies" / "tripod_go2_v7.onnx")
@@ -143,36 +142,3 @@ def test_bad_inputs_exit_nonzero_with_one_line(tmp_path, args, hint):
     assert p.returncode != 0
     lines = p.stderr.strip().splitlines()
     assert hint in lines[-1] and "Traceback" not in p.stderr
-
-
-def test_gain_matched_labels_scale_the_teachers_action_by_the_stiffness(tmp_path):
-    """labels="actuation_gains": the teacher's action on the actuation frame divided by the
-    env's kp scale times motor strength, except on a lifted leg's joints; the teacher sees its
-    own previous action; the envs that ended are not stored."""
-    cfg = DistillConfig(teacher=TEACHER, history=2, num_envs=4, steps_per_iteration=1,
-                        buffer_samples=20, updates_per_iteration=1, batch_size=4,
-                        labels="actuation_gains")
-    d = Distiller(cfg, tmp_path, seed=3, threads=1)
-    e = d.env
-    e.lift_leg[:] = -1
-    e.kp_s[:], e.kd_s[:], e.strength[:] = [1.0, 0.8, 1.0, 1.0], 1.0, [1.0, 1.0, 0.9, 1.0]
-    d._collect(e.observations())
-    y = d.teacher.run(None, {d.teacher_in: e.actuation_frames})[0]
-    np.testing.assert_allclose(d.buf_y[:4], y / np.array([1.0, 0.8, 0.9, 1.0])[:, None],
-                               rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(d.teacher_action, y, atol=1e-6)
-    # the next frames show the teacher its own previous action, not the student's
-    before = d.teacher_action.copy()
-    d._collect(e.observations())
-    np.testing.assert_allclose(e.actuation_frames[:, 33:45], before, atol=1e-5)
-    # a lifted leg's joints keep the teacher's action; an env that ended is not stored
-    y = np.random.default_rng(0).normal(0, 1, (4, 12)).astype(np.float32)
-    e.kp_s[:], e.strength[:] = 0.8, 1.0
-    labels, keep = d._gain_matched_labels(y, np.array([False, False, False, True]),
-                                          np.array([-1, 2, -1, -1]))
-    rl = model_to_sdk(np.repeat(np.arange(4) == 2, 3)[None])[0]  # model legs FL FR RL RR
-    np.testing.assert_allclose(labels[1, rl], y[1, rl], rtol=1e-6)
-    np.testing.assert_allclose(labels[1, ~rl], y[1, ~rl] / 0.8, rtol=1e-6)
-    np.testing.assert_allclose(labels[0], y[0] / 0.8, rtol=1e-6)
-    assert keep.tolist() == [True, True, True, False]
-    np.testing.assert_array_equal(d.teacher_action[3], e.actions[3])
