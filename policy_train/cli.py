@@ -391,7 +391,8 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--iterations", type=_positive, default=400)
     d.add_argument("--num-envs", type=_positive, default=None)
     d.add_argument("--learning-rate", type=_number(1e-7, 1.0, "must be in [1e-7, 1)"),
-                   default=None)
+                   default=None, metavar="LR",
+                   help="Adam's learning rate (3e-4); on --resume it replaces the checkpoint's")
     d.add_argument("--lift-leg-weights", type=_weights, default=None, metavar="FL,FR,RL,RR")
     d.add_argument("--save-interval", type=_positive, default=None)
     d.add_argument("--dr", type=_dr_setting, action="append", default=[], metavar="FIELD=VALUE",
