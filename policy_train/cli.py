@@ -139,8 +139,9 @@ def _distill(a) -> int:
     if a.lift_leg_weights is not None:
         cfg.lift_leg_weights = a.lift_leg_weights
     cfg.dr = {**cfg.dr, **dict(a.dr)}
-    if resume is not None and cfg.history != int(resume["distill"]["history"]):
-        raise SystemExit("--history cannot change on --resume")
+    if resume is not None and cfg.history < int(resume["distill"]["history"]):
+        raise SystemExit(f"--history can only grow on --resume (the checkpoint sees "
+                         f"{resume['distill']['history']} frames)")
     run_dir = Path(a.run_dir or f"runs/distill_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
     t0 = time.time()
     try:
@@ -387,7 +388,9 @@ def main(argv: list[str] | None = None) -> int:
                        "observations (DAgger; docs/policy-training.md)")
     d.add_argument("--teacher", default="policies/tripod_go2_v7.onnx",
                    help="the exported policy to imitate (its .json beside it)")
-    d.add_argument("--history", type=_positive, default=None, help="frames the student sees (10)")
+    d.add_argument("--history", type=_positive, default=None,
+                   help="frames the student sees (10); on --resume it may grow, the older "
+                        "frames' weights starting at zero")
     d.add_argument("--iterations", type=_positive, default=400)
     d.add_argument("--num-envs", type=_positive, default=None)
     d.add_argument("--learning-rate", type=_number(1e-7, 1.0, "must be in [1e-7, 1)"),

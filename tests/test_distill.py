@@ -12,7 +12,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from policy_train.distill import DistillConfig, Distiller
+from policy_train.distill import DistillConfig, Distiller, widen_history
 
 TEACHER = str(Path(__file__).resolve().parents[1] / "policies" / "tripod_go2_v7.onnx")
 
@@ -79,6 +79,39 @@ def test_actuation_labels_are_the_teachers_actions_where_the_action_takes_effect
         Distiller(DistillConfig(teacher=TEACHER, num_envs=2, labels="later"), tmp_path)
 
 
+def test_widened_history_acts_as_before_and_adam_takes_no_sign_steps():
+    """widen_history (a resume with a longer --history): the student's outputs are unchanged
+    whatever the older frames hold; the new columns' first moments are zero and their second
+    moments the oldest saved frame's, so Adam's first step on them is not a sign step."""
+    from rsl_rl.modules import MLP
+
+    torch.manual_seed(0)
+    small = MLP(49 * 2, 12, [16, 8], "elu")
+    opt = torch.optim.Adam(small.parameters(), lr=1e-3)
+    for _ in range(3):
+        opt.zero_grad()
+        small(torch.randn(32, 98)).square().mean().backward()
+        opt.step()
+    actor = {f"mlp.{k}": v for k, v in small.state_dict().items()}
+    saved = {k: v.clone() for k, v in actor.items()}
+    wide_actor, wide_opt = widen_history(actor, opt.state_dict(), 2, 5)
+    big = MLP(49 * 5, 12, [16, 8], "elu")
+    big.load_state_dict({k[len("mlp."):]: v for k, v in wide_actor.items()})
+    x = torch.randn(10, 49 * 5)
+    with torch.no_grad():
+        np.testing.assert_allclose(big(x).numpy(), small(x[:, :98]).numpy(), atol=1e-6)
+    st = wide_opt["state"][0]
+    assert st["exp_avg"].shape == (16, 245) and not st["exp_avg"][:, 98:].any()
+    old_v = opt.state_dict()["state"][0]["exp_avg_sq"]
+    for k in range(2, 5):
+        torch.testing.assert_close(st["exp_avg_sq"][:, 49 * k:49 * (k + 1)], old_v[:, 49:])
+    assert all(torch.equal(actor[k], saved[k]) for k in actor)  # the inputs are untouched
+    big_opt = torch.optim.Adam(big.parameters(), lr=1e-3)
+    big_opt.load_state_dict(wide_opt)  # shapes fit the widened student
+    with pytest.raises(ValueError, match="only grow"):
+        widen_history(actor, opt.state_dict(), 2, 1)
+
+
 def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     from deploy.policy import PolicyMeta, PolicyRunner
 
@@ -114,7 +147,7 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     np.testing.assert_allclose(runner.act(f[2]), sess.run(None, {"obs": np.r_[f[2], f[2]][None]})[0][0],
                                atol=1e-6)
     # resume continues the run's iterations, at the learning rate asked for (the optimiser's
-    # saved state carries the old one); its history cannot change
+    # saved state carries the old one); its history may grow, not shrink
     p = subprocess.run(base + ["--resume", str(run / "model_2.pt"), "--iterations", "1",
                                "--learning-rate", "5e-5"],
                        capture_output=True, text=True, timeout=300, check=False)
@@ -123,9 +156,16 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     ckpt = torch.load(run / "model_3.pt", weights_only=False)
     assert [g["lr"] for g in ckpt["optimizer_state_dict"]["param_groups"]] == [5e-5]
     assert ckpt["distill"]["learning_rate"] == 5e-5
-    p = subprocess.run(base + ["--resume", str(run / "model_2.pt"), "--history", "4"],
+    p = subprocess.run(base + ["--resume", str(run / "model_2.pt"), "--history", "1"],
                        capture_output=True, text=True, timeout=300, check=False)
     assert p.returncode != 0 and "--history" in p.stderr.strip().splitlines()[-1]
+    p = subprocess.run(base + ["--resume", str(run / "model_3.pt"), "--history", "3",
+                               "--iterations", "1"],
+                       capture_output=True, text=True, timeout=300, check=False)
+    assert p.returncode == 0 and "3 frames" in p.stdout, p.stdout[-2000:] + p.stderr[-2000:]
+    ckpt = torch.load(run / "model_4.pt", weights_only=False)
+    assert ckpt["distill"]["history"] == 3
+    assert ckpt["actor_state_dict"]["mlp.0.weight"].shape[1] == 147
 
 
 @pytest.mark.parametrize(("args", "hint"), [
