@@ -138,6 +138,8 @@ def _distill(a) -> int:
             setattr(cfg, arg, getattr(a, arg))
     if a.lift_leg_weights is not None:
         cfg.lift_leg_weights = a.lift_leg_weights
+    if a.hidden is not None:
+        cfg.hidden = a.hidden
     cfg.dr = {**cfg.dr, **dict(a.dr)}
     if resume is not None and cfg.history < int(resume["distill"]["history"]):
         raise SystemExit(f"--history can only grow on --resume (the checkpoint sees "
@@ -332,6 +334,17 @@ def _weights(text: str) -> tuple[float, ...]:
     return w
 
 
+def _widths(text: str) -> tuple[int, ...]:
+    """argparse type: hidden layer widths, e.g. 512,256,128."""
+    try:
+        w = tuple(int(x) for x in text.split(","))
+    except ValueError:
+        w = ()
+    if not w or min(w) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: give positive widths, e.g. 512,256,128")
+    return w
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="a2i-train", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -391,6 +404,10 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--history", type=_positive, default=None,
                    help="frames the student sees (10); on --resume it may grow, the older "
                         "frames' weights starting at zero")
+    d.add_argument("--hidden", type=_widths, default=None, metavar="H1,H2,H3",
+                   help="the student's hidden layer widths (default: the teacher's); on "
+                        "--resume they may grow, the added units starting with zero output "
+                        "weights")
     d.add_argument("--iterations", type=_positive, default=400)
     d.add_argument("--num-envs", type=_positive, default=None)
     d.add_argument("--learning-rate", type=_number(1e-7, 1.0, "must be in [1e-7, 1)"),

@@ -33,7 +33,8 @@ import numpy as np
 from calib.atomic import write_bytes_atomic
 from deploy.observation import OBS_SIZE
 
-__all__ = ["LABELS", "DistillConfig", "Distiller", "student_from_teacher", "widen_history"]
+__all__ = ["LABELS", "DistillConfig", "Distiller", "student_from_teacher", "widen_hidden",
+           "widen_history"]
 
 
 @dataclass
@@ -59,6 +60,9 @@ class DistillConfig:
     # "actuation", the state at which the student's action reaches the motors, its env's
     # actuation latency later (LABELS)
     labels: str = "now"
+    # hidden layer widths of the student; None: the teacher's (v8-v14: 256, 128, 64). On a
+    # resume they may grow (widen_hidden)
+    hidden: tuple[int, ...] | None = None
 
 
 LABELS = ("now", "actuation")
@@ -124,6 +128,60 @@ def widen_history(actor: dict, optimizer: dict, old: int, new: int) -> tuple[dic
     return actor, optimizer
 
 
+def widen_hidden(actor: dict, optimizer: dict | None, hidden, seed: int = 0
+                 ) -> tuple[dict, dict | None]:
+    """A student (``mlp.*`` state dict of an rsl-rl ``MLP``: Linear layers ``mlp.0``, ``mlp.2``,
+    ...) and its Adam state widened to the hidden layer widths ``hidden``, each >= the saved
+    one, acting exactly as before (Net2Net's function-preserving widening, Chen et al. 2016):
+    an added unit's incoming weights are random (the spread of its layer's existing rows), its
+    bias zero, and its outgoing weights zero, so it changes nothing until the outgoing weights
+    learn. Adam's first moments of the added entries are zero, their second moments the mean
+    of the tensor's saved ones, so that the first steps on them are not full learning-rate
+    sign steps (the upset ``widen_history`` measured). ``optimizer`` may be None (a fresh
+    student). Returns new dicts; the inputs are not changed."""
+    import torch
+
+    n_lin = len([k for k in actor if k.startswith("mlp.") and k.endswith(".weight")])
+    old = [int(actor[f"mlp.{2 * i}.weight"].shape[0]) for i in range(n_lin - 1)]
+    hidden = [int(h) for h in hidden]
+    if len(hidden) != len(old):
+        raise ValueError(f"the student has {len(old)} hidden layers, not {len(hidden)}")
+    if any(h < o for h, o in zip(hidden, old, strict=True)):
+        raise ValueError(f"hidden layers can only grow ({', '.join(map(str, old))} saved, "
+                         f"not {', '.join(map(str, hidden))})")
+    gen = torch.Generator().manual_seed(seed)
+    actor = {k: v.clone() for k, v in actor.items()}
+    shapes = {}  # parameter name -> (rows, cols) before and after
+    for i in range(n_lin):
+        w, b = actor[f"mlp.{2 * i}.weight"], actor[f"mlp.{2 * i}.bias"]
+        rows = hidden[i] if i < n_lin - 1 else w.shape[0]
+        cols = w.shape[1] if i == 0 else hidden[i - 1]
+        nw = torch.zeros(rows, cols, dtype=w.dtype)
+        nw[:w.shape[0], :w.shape[1]] = w
+        if rows > w.shape[0]:  # the added units' inputs: all of the (widened) layer below
+            nw[w.shape[0]:] = torch.randn(rows - w.shape[0], cols, generator=gen) * w.std()
+        nb = torch.zeros(rows, dtype=b.dtype)
+        nb[:b.shape[0]] = b
+        actor[f"mlp.{2 * i}.weight"], actor[f"mlp.{2 * i}.bias"] = nw, nb
+        shapes[2 * i] = (tuple(w.shape), tuple(nw.shape))
+        shapes[2 * i + 1] = (tuple(b.shape), tuple(nb.shape))
+    if optimizer is None:
+        return actor, None
+    state = {k: dict(v) for k, v in optimizer["state"].items()}
+    params = optimizer["param_groups"][0]["params"]  # in the MLP's order: 0.weight, 0.bias, ...
+    for pos, pid in enumerate(params):
+        if pid not in state:
+            continue
+        old_shape, new_shape = shapes[pos]
+        st = state[pid]
+        for key, fill in (("exp_avg", False), ("exp_avg_sq", True)):
+            x = st[key]
+            out = torch.full(new_shape, float(x.mean()) if fill else 0.0, dtype=x.dtype)
+            out[tuple(slice(0, n) for n in old_shape)] = x
+            st[key] = out
+    return actor, {"state": state, "param_groups": optimizer["param_groups"]}
+
+
 class Distiller:
     """The teacher (onnxruntime, its JSON), the environment, the student and its optimiser."""
 
@@ -172,21 +230,32 @@ class Distiller:
         self.env.obs_terms = self.meta["observation"]["terms"]  # the teacher's, as on board
         if cfg.labels == "actuation":
             self.env.actuation_frames = np.zeros((e.num_envs, OBS_SIZE), dtype=np.float32)
-        self.student = student_from_teacher(start["actor_mlp"], cfg.history,
-                                            tc.ppo.actor_hidden)
-        self.opt = torch.optim.Adam(self.student.parameters(), lr=cfg.learning_rate)
+        from rsl_rl.modules import MLP
+
         self.iteration = 0
         self.history: list[dict] = []
-        if resume is not None:
+        if resume is None:
+            first = student_from_teacher(start["actor_mlp"], cfg.history, tc.ppo.actor_hidden)
+            actor = {f"mlp.{k}": v for k, v in first.state_dict().items()}
+            opt_state = None
+        else:
             actor, opt_state = widen_history(resume["actor_state_dict"],
                                              resume["optimizer_state_dict"],
                                              int(resume["distill"]["history"]), cfg.history)
-            self.student.load_state_dict({k[len("mlp."):]: v for k, v in actor.items()})
+            self.iteration = int(resume["iter"])
+            self.history = list(resume.get("history", []))
+        saved_hidden = [int(actor[f"mlp.{2 * i}.weight"].shape[0])
+                        for i in range(len([k for k in actor if k.endswith(".weight")]) - 1)]
+        hidden = tuple(cfg.hidden or saved_hidden)
+        actor, opt_state = widen_hidden(actor, opt_state, hidden, seed)
+        tc.ppo.actor_hidden = hidden  # export builds the student's network from this
+        self.student = MLP(OBS_SIZE * cfg.history, 12, list(hidden), "elu")
+        self.student.load_state_dict({k[len("mlp."):]: v for k, v in actor.items()})
+        self.opt = torch.optim.Adam(self.student.parameters(), lr=cfg.learning_rate)
+        if opt_state is not None:
             self.opt.load_state_dict(opt_state)
             for group in self.opt.param_groups:  # the state carries the rate it was saved with
                 group["lr"] = cfg.learning_rate
-            self.iteration = int(resume["iter"])
-            self.history = list(resume.get("history", []))
         n_in = OBS_SIZE * cfg.history
         self.buf_x = np.zeros((cfg.buffer_samples, n_in), dtype=np.float32)
         self.buf_y = np.zeros((cfg.buffer_samples, 12), dtype=np.float32)

@@ -12,7 +12,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from policy_train.distill import DistillConfig, Distiller, widen_history
+from policy_train.distill import DistillConfig, Distiller, widen_hidden, widen_history
 
 TEACHER = str(Path(__file__).resolve().parents[1] / "policies" / "tripod_go2_v7.onnx")
 
@@ -112,6 +112,48 @@ def test_widened_history_acts_as_before_and_adam_takes_no_sign_steps():
         widen_history(actor, opt.state_dict(), 2, 1)
 
 
+def test_widened_hidden_layers_act_as_before_and_the_added_units_learn():
+    """widen_hidden (a resume with a wider --hidden): the outputs are unchanged; the added
+    units' outgoing weights are zero and learn from the first step; Adam's moments fit the
+    widened tensors, the added entries' second moments the tensor's saved mean."""
+    from rsl_rl.modules import MLP
+
+    torch.manual_seed(0)
+    small = MLP(20, 12, [16, 8], "elu")
+    opt = torch.optim.Adam(small.parameters(), lr=1e-3)
+    for _ in range(3):
+        opt.zero_grad()
+        small(torch.randn(32, 20)).square().mean().backward()
+        opt.step()
+    actor = {f"mlp.{k}": v for k, v in small.state_dict().items()}
+    saved = {k: v.clone() for k, v in actor.items()}
+    wide_actor, wide_opt = widen_hidden(actor, opt.state_dict(), (24, 11), seed=3)
+    assert all(torch.equal(actor[k], saved[k]) for k in actor)  # the inputs are untouched
+    big = MLP(20, 12, [24, 11], "elu")
+    big.load_state_dict({k[len("mlp."):]: v for k, v in wide_actor.items()})
+    x = torch.randn(50, 20)
+    with torch.no_grad():
+        np.testing.assert_allclose(big(x).numpy(), small(x).numpy(), atol=1e-6)
+    assert wide_actor["mlp.0.weight"][16:].abs().sum() > 0  # the added units see the input
+    assert not wide_actor["mlp.2.weight"][:8, 16:].any()   # and feed nothing yet
+    assert not wide_actor["mlp.4.weight"][:, 8:].any()
+    old_v = opt.state_dict()["state"][2]["exp_avg_sq"]     # mlp.2.weight's
+    st = wide_opt["state"][2]
+    assert st["exp_avg_sq"].shape == (11, 24) and not st["exp_avg"][8:].any()
+    torch.testing.assert_close(st["exp_avg_sq"][:8, :16], old_v)
+    torch.testing.assert_close(st["exp_avg_sq"][8:, 16:], torch.full((3, 8), float(old_v.mean())))
+    big_opt = torch.optim.Adam(big.parameters(), lr=1e-3)
+    big_opt.load_state_dict(wide_opt)
+    big_opt.zero_grad()
+    big(x).square().mean().backward()
+    assert big[4].weight.grad[:, 8:].abs().sum() > 0  # the zero outgoing weights get gradients
+    assert widen_hidden(actor, None, (16, 8))[1] is None
+    with pytest.raises(ValueError, match="only grow"):
+        widen_hidden(actor, opt.state_dict(), (16, 7))
+    with pytest.raises(ValueError, match="hidden layers"):
+        widen_hidden(actor, opt.state_dict(), (16, 8, 4))
+
+
 def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     from deploy.policy import PolicyMeta, PolicyRunner
 
@@ -166,6 +208,20 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     ckpt = torch.load(run / "model_4.pt", weights_only=False)
     assert ckpt["distill"]["history"] == 3
     assert ckpt["actor_state_dict"]["mlp.0.weight"].shape[1] == 147
+    # a wider student: the checkpoint and the export carry its widths; they may not shrink
+    p = subprocess.run(base + ["--resume", str(run / "model_4.pt"), "--hidden", "260,130,66",
+                               "--iterations", "1", "--export", str(tmp_path / "wide")],
+                       capture_output=True, text=True, timeout=300, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    ckpt = torch.load(run / "model_5.pt", weights_only=False)
+    assert tuple(ckpt["train_config"]["ppo"]["actor_hidden"]) == (260, 130, 66)
+    assert tuple(ckpt["distill"]["hidden"]) == (260, 130, 66)
+    assert ckpt["actor_state_dict"]["mlp.4.weight"].shape == (66, 130)
+    sess = ort.InferenceSession(str(tmp_path / "wide.onnx"), providers=["CPUExecutionProvider"])
+    assert sess.run(None, {"obs": np.zeros((2, 147), np.float32)})[0].shape == (2, 12)
+    p = subprocess.run(base + ["--resume", str(run / "model_5.pt"), "--hidden", "256,128,64"],
+                       capture_output=True, text=True, timeout=300, check=False)
+    assert p.returncode != 0 and "only grow" in p.stderr.strip().splitlines()[-1]
 
 
 @pytest.mark.parametrize(("args", "hint"), [
@@ -174,6 +230,7 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     (["--num-envs", "x"], "--num-envs"),
     (["--dr", "nope=1"], "--dr"),
     (["--labels", "later"], "--labels"),
+    (["--hidden", "512,x"], "--hidden"),
 ])
 def test_bad_inputs_exit_nonzero_with_one_line(tmp_path, args, hint):
     p = subprocess.run([sys.executable, "-m", "policy_train.cli", "distill", "--iterations", "1",
