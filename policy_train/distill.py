@@ -128,6 +128,12 @@ def widen_history(actor: dict, optimizer: dict, old: int, new: int) -> tuple[dic
     return actor, optimizer
 
 
+def hidden_widths(actor: dict) -> list[int]:
+    """The hidden layer widths of a student (``mlp.*`` state dict of an rsl-rl ``MLP``)."""
+    n_lin = len([k for k in actor if k.startswith("mlp.") and k.endswith(".weight")])
+    return [int(actor[f"mlp.{2 * i}.weight"].shape[0]) for i in range(n_lin - 1)]
+
+
 def widen_hidden(actor: dict, optimizer: dict | None, hidden, seed: int = 0
                  ) -> tuple[dict, dict | None]:
     """A student (``mlp.*`` state dict of an rsl-rl ``MLP``: Linear layers ``mlp.0``, ``mlp.2``,
@@ -141,8 +147,8 @@ def widen_hidden(actor: dict, optimizer: dict | None, hidden, seed: int = 0
     student). Returns new dicts; the inputs are not changed."""
     import torch
 
-    n_lin = len([k for k in actor if k.startswith("mlp.") and k.endswith(".weight")])
-    old = [int(actor[f"mlp.{2 * i}.weight"].shape[0]) for i in range(n_lin - 1)]
+    old = hidden_widths(actor)
+    n_lin = len(old) + 1
     hidden = [int(h) for h in hidden]
     if len(hidden) != len(old):
         raise ValueError(f"the student has {len(old)} hidden layers, not {len(hidden)}")
@@ -151,7 +157,7 @@ def widen_hidden(actor: dict, optimizer: dict | None, hidden, seed: int = 0
                          f"not {', '.join(map(str, hidden))})")
     gen = torch.Generator().manual_seed(seed)
     actor = {k: v.clone() for k, v in actor.items()}
-    shapes = {}  # parameter name -> (rows, cols) before and after
+    shapes = {}  # the parameter's position in the MLP -> its shape before and after
     for i in range(n_lin):
         w, b = actor[f"mlp.{2 * i}.weight"], actor[f"mlp.{2 * i}.bias"]
         rows = hidden[i] if i < n_lin - 1 else w.shape[0]
@@ -189,6 +195,7 @@ class Distiller:
                  log=print, resume: dict | None = None):
         import onnxruntime as ort
         import torch
+        from rsl_rl.modules import MLP
 
         from policy_train.config import TrainConfig
         from policy_train.env import PlanPool, TripodEnv
@@ -230,8 +237,6 @@ class Distiller:
         self.env.obs_terms = self.meta["observation"]["terms"]  # the teacher's, as on board
         if cfg.labels == "actuation":
             self.env.actuation_frames = np.zeros((e.num_envs, OBS_SIZE), dtype=np.float32)
-        from rsl_rl.modules import MLP
-
         self.iteration = 0
         self.history: list[dict] = []
         if resume is None:
@@ -244,9 +249,7 @@ class Distiller:
                                              int(resume["distill"]["history"]), cfg.history)
             self.iteration = int(resume["iter"])
             self.history = list(resume.get("history", []))
-        saved_hidden = [int(actor[f"mlp.{2 * i}.weight"].shape[0])
-                        for i in range(len([k for k in actor if k.endswith(".weight")]) - 1)]
-        hidden = tuple(cfg.hidden or saved_hidden)
+        hidden = tuple(cfg.hidden or hidden_widths(actor))
         actor, opt_state = widen_hidden(actor, opt_state, hidden, seed)
         tc.ppo.actor_hidden = hidden  # export builds the student's network from this
         self.student = MLP(OBS_SIZE * cfg.history, 12, list(hidden), "elu")
