@@ -79,20 +79,28 @@ def test_actuation_labels_are_the_teachers_actions_where_the_action_takes_effect
         Distiller(DistillConfig(teacher=TEACHER, num_envs=2, labels="later"), tmp_path)
 
 
+def _stepped_student(n_in: int):
+    """A small student (hidden 16, 8) after three Adam steps, so its optimiser has moments;
+    returns the network, the optimiser and the ``mlp.*`` state dict of a checkpoint."""
+    from rsl_rl.modules import MLP
+
+    torch.manual_seed(0)
+    small = MLP(n_in, 12, [16, 8], "elu")
+    opt = torch.optim.Adam(small.parameters(), lr=1e-3)
+    for _ in range(3):
+        opt.zero_grad()
+        small(torch.randn(32, n_in)).square().mean().backward()
+        opt.step()
+    return small, opt, {f"mlp.{k}": v for k, v in small.state_dict().items()}
+
+
 def test_widened_history_acts_as_before_and_adam_takes_no_sign_steps():
     """widen_history (a resume with a longer --history): the student's outputs are unchanged
     whatever the older frames hold; the new columns' first moments are zero and their second
     moments the oldest saved frame's, so Adam's first step on them is not a sign step."""
     from rsl_rl.modules import MLP
 
-    torch.manual_seed(0)
-    small = MLP(49 * 2, 12, [16, 8], "elu")
-    opt = torch.optim.Adam(small.parameters(), lr=1e-3)
-    for _ in range(3):
-        opt.zero_grad()
-        small(torch.randn(32, 98)).square().mean().backward()
-        opt.step()
-    actor = {f"mlp.{k}": v for k, v in small.state_dict().items()}
+    small, opt, actor = _stepped_student(98)
     saved = {k: v.clone() for k, v in actor.items()}
     wide_actor, wide_opt = widen_history(actor, opt.state_dict(), 2, 5)
     big = MLP(49 * 5, 12, [16, 8], "elu")
@@ -118,14 +126,7 @@ def test_widened_hidden_layers_act_as_before_and_the_added_units_learn():
     widened tensors, the added entries' second moments the tensor's saved mean."""
     from rsl_rl.modules import MLP
 
-    torch.manual_seed(0)
-    small = MLP(20, 12, [16, 8], "elu")
-    opt = torch.optim.Adam(small.parameters(), lr=1e-3)
-    for _ in range(3):
-        opt.zero_grad()
-        small(torch.randn(32, 20)).square().mean().backward()
-        opt.step()
-    actor = {f"mlp.{k}": v for k, v in small.state_dict().items()}
+    small, opt, actor = _stepped_student(20)
     saved = {k: v.clone() for k, v in actor.items()}
     wide_actor, wide_opt = widen_hidden(actor, opt.state_dict(), (24, 11), seed=3)
     assert all(torch.equal(actor[k], saved[k]) for k in actor)  # the inputs are untouched
