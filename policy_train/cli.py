@@ -8,7 +8,8 @@
   a2i-train export CHECKPOINT [CHECKPOINT ...] --out policies/NAME [--legs RL,RR]
                    [--mirror-legs FR,RR]   (several checkpoints of one run: weights averaged)
   a2i-train eval policies/NAME.onnx [--episodes 100] [--legs FL,FR,RL,RR] [--no-write]
-                 [--nominal | --dr-off GROUP[,GROUP]] [--randomisation standard|training]
+                 [--nominal | --dr-off GROUP[,GROUP] --dr FIELD=VALUE ...]
+                 [--randomisation standard|training]
   a2i-train transfer policies/NAME.onnx [--scenarios training,heavy,...] [--episodes 20]
                  [--legs FL,FR,RL,RR] [--out docs/results/policy_transfer.md]
                                    (the calibration re-run on sim.go2 under perturbations)
@@ -79,8 +80,7 @@ def _tripod(a) -> int:
             setattr(section, field, getattr(a, arg))
     if a.mirror_augmentation is not None:
         cfg.ppo.mirror_augmentation = a.mirror_augmentation
-    for field, value in a.dr:
-        setattr(cfg.env.dr, field, value)
+    cfg.env.dr = cfg.env.dr.with_settings(dict(a.dr))
     run_dir = Path(a.run_dir or f"runs/tripod_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
     t0 = time.time()
     if a.from_policy and cfg.env.plan_pool_file is None:
@@ -271,7 +271,7 @@ def _eval(a) -> int:
 
     evaluate_policy(a.onnx, episodes=a.episodes, legs=a.legs, seed=a.seed,
                     write=not a.no_write, results_path=a.results, nominal=a.nominal,
-                    dr_off=a.dr_off, randomisation=a.randomisation)
+                    dr_off=a.dr_off, randomisation=a.randomisation, dr_set=dict(a.dr))
     return 0
 
 
@@ -450,6 +450,9 @@ def main(argv: list[str] | None = None) -> int:
     v.add_argument("--dr-off", type=_dr_groups, default=(), metavar="GROUP[,GROUP]",
                    help="hold these randomisation groups nominal, to see what each costs "
                         f"({', '.join(DR_GROUPS)}); writes nothing")
+    v.add_argument("--dr", type=_dr_setting, action="append", default=[], metavar="FIELD=VALUE",
+                   help="a randomisation field set over the drawn ranges (repeatable), e.g. "
+                        "--dr motor_strength=0.7,0.8 for weak motors; writes nothing")
     v.add_argument("--randomisation", choices=RANDOMISATIONS, default="standard",
                    help="standard: DRConfig's defaults, the same for every policy (written); "
                         "training: the policy's own training ranges (writes nothing)")
@@ -487,8 +490,8 @@ def main(argv: list[str] | None = None) -> int:
                 p.error(f"{name} {path}: no such file")
     if a.cmd == "tripod" and a.from_policy and not Path(a.from_policy).with_suffix(".json").is_file():
         p.error(f"{Path(a.from_policy).with_suffix('.json')}: no policy metadata beside the ONNX file")
-    if a.cmd == "eval" and a.nominal and a.dr_off:
-        p.error("--dr-off needs the randomisation on: drop --nominal")
+    if a.cmd == "eval" and a.nominal and (a.dr_off or a.dr):
+        p.error("--dr-off and --dr need the randomisation on: drop --nominal")
     if a.cmd == "transfer" and a.onnx is None and not a.list:
         p.error("transfer needs the policy's .onnx (or --list)")
     if a.cmd == "transfer" and a.scenarios is None:

@@ -82,6 +82,15 @@ class DRConfig:
     # also sees quiet sensors (docs/policy-training.md, v8)
     noise_scale: tuple[float, float] = (1.0, 1.0)
 
+    def with_settings(self, settings: dict) -> DRConfig:
+        """A copy with the named fields set (``a2i-train tripod / distill / eval --dr``; lists,
+        as JSON stores ranges, become tuples). ValueError on an unknown field."""
+        unknown = [k for k in settings if k not in self.__dataclass_fields__ or k == "enabled"]
+        if unknown:
+            raise ValueError(f"unknown randomisation field(s) {', '.join(map(repr, unknown))}")
+        return replace(self, **{k: tuple(v) if isinstance(v, list) else v
+                                for k, v in settings.items()})
+
     def without(self, *groups: str) -> DRConfig:
         """A copy with the named groups of ``DR_GROUPS`` at their nominal values."""
         unknown = [g for g in groups if g not in DR_GROUPS]

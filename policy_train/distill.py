@@ -222,10 +222,7 @@ class Distiller:
         e.model_file = e.plan_pool_file = None
         e.p_excite = 1.0  # phase 2: every lift plays an excitation
         e.lift_leg_weights = tuple(cfg.lift_leg_weights)
-        for k, v in cfg.dr.items():
-            if k not in e.dr.__dataclass_fields__:
-                raise ValueError(f"unknown randomisation field {k!r}")
-            setattr(e.dr, k, tuple(v) if isinstance(v, list) else v)
+        e.dr = e.dr.with_settings(cfg.dr)
         sched = self.meta["lift_schedule"]
         e.lift_kp, e.lift_kd = float(sched["kp"]), float(sched["kd"])
         e.lift_feedforward = bool(sched.get("feedforward", False))  # as deploy plays it

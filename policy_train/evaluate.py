@@ -9,7 +9,11 @@ base angular-rate RMS (norm), lifted-leg joint tracking RMSE (all three joints, 
 step of each policy step), and the condition number of the executed foot angular velocity
 (body gyro rotated into the foot frame plus the leg's relative rate, at 50 Hz). Each failed
 episode is counted by its first cause (:func:`failure_cause`) and phase, and the stance calves'
-lowest approach to the floor during the excitation is reported (``calf_clearance_mm``).
+lowest approach to the floor during the excitation is reported (``calf_clearance_mm``), with
+how much of the excitation their targets sit on the soft limit that caps their extension
+(``stance_calves_on_clamp``: there a calf is a kp spring about that limit, and a weaker motor
+lets it fold) and the success of the episodes drawn with soft motors (``success_weak``: kp scale
+times motor strength below :data:`WEAK_STIFFNESS`).
 """
 
 from __future__ import annotations
@@ -28,11 +32,14 @@ from deploy.lift_schedule import PHASES, LiftSchedule
 from policy_train.config import RANDOMISATIONS, DRConfig, TrainConfig
 from policy_train.env import PlanPool, TripodEnv
 
-__all__ = ["TARGETS", "evaluate_policy", "evaluation_env", "failure_cause", "foot_angular_velocity",
+__all__ = ["TARGETS", "WEAK_STIFFNESS", "evaluate_policy", "evaluation_env", "failure_cause", "foot_angular_velocity",
            "format_failures", "format_table"]
 
 TARGETS = {"success": 0.99, "tilt_rms_deg": 3.0, "ang_rate_rms": 0.1, "track_rmse": 0.05,
            "cn": 1.2}
+WEAK_STIFFNESS = 0.9
+"""kp scale x motor strength below which an episode's motors count as soft (``success_weak``)."""
+_CALVES = 3 * np.arange(4) + 2  # model order: hip, thigh, calf per leg
 
 
 def foot_angular_velocity(q_leg: np.ndarray, dq_leg: np.ndarray, omega_base: np.ndarray):
@@ -43,11 +50,12 @@ def foot_angular_velocity(q_leg: np.ndarray, dq_leg: np.ndarray, omega_base: np.
 
 def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = False,
                    dr_off: tuple[str, ...] = (), randomisation: str = "standard",
-                   ) -> tuple[TripodEnv, np.ndarray]:
+                   dr_set: dict | None = None) -> tuple[TripodEnv, np.ndarray]:
     """The evaluation's environment for a policy's JSON: ``episodes`` per leg of ``legs``, each
     with the lift command at t = 0 and the JSON's schedule and plans, running to its end (no
     terminations, no reference starts), under the ``randomisation`` (of
-    :data:`config.RANDOMISATIONS`). Returns the env and each episode's model leg index."""
+    :data:`config.RANDOMISATIONS`), ``dr_off``'s groups held nominal and ``dr_set``'s fields
+    (``DRConfig`` names) set over it. Returns the env and each episode's model leg index."""
     if randomisation not in RANDOMISATIONS:
         raise ValueError(f"unknown randomisation {randomisation!r}; known: "
                          f"{', '.join(RANDOMISATIONS)}")
@@ -58,7 +66,7 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
     cfg.seed = seed
     if randomisation == "standard":
         cfg.dr = DRConfig()
-    cfg.dr = cfg.dr.without(*dr_off)
+    cfg.dr = cfg.dr.without(*dr_off).with_settings(dr_set or {})
     cfg.dr.enabled = not nominal
     # every episode starts on four legs and runs to its end: failures are counted, not ended
     cfg.p_reference_start = 0.0
@@ -83,7 +91,8 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
 
 def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, write: bool = True,
                     results_path="docs/results/policy.md", log=print, nominal: bool = False,
-                    dr_off: tuple[str, ...] = (), randomisation: str = "standard") -> dict:
+                    dr_off: tuple[str, ...] = (), randomisation: str = "standard",
+                    dr_set: dict | None = None) -> dict:
     """Per-leg figures of the policy over ``episodes`` calibration motions per leg, under the
     ``randomisation`` (:data:`config.RANDOMISATIONS`; only ``standard`` is written).
 
@@ -91,7 +100,9 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     pushes or observation noise: the deploy mock's situation); then ``write`` stores the
     figures under the JSON's ``evaluation_nominal`` only, and the DR evaluation's report (run
     after it) shows them in a second table. ``dr_off``: groups of ``config.DR_GROUPS`` held
-    nominal (a diagnosis of what each costs); such an evaluation is never written.
+    nominal (a diagnosis of what each costs); ``dr_set``: ``DRConfig`` fields set over the
+    randomisation (``{"motor_strength": (0.7, 0.8)}``: how it does with weak motors). Either
+    is a diagnosis, never written.
     """
     import onnxruntime as ort
 
@@ -100,12 +111,12 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     legs = tuple(legs) if legs else tuple(meta.get("legs", MODEL_LEGS))  # the legs it serves
     if episodes < 1:
         raise ValueError("episodes must be >= 1")
-    if dr_off and nominal:
-        raise ValueError("dr_off needs the randomisation on (not nominal)")
+    if (dr_off or dr_set) and nominal:
+        raise ValueError("dr_off and dr_set need the randomisation on (not nominal)")
     sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
     t0 = time.time()
     env, leg_of = evaluation_env(meta, legs, episodes, seed, nominal=nominal, dr_off=dr_off,
-                                 randomisation=randomisation)
+                                 randomisation=randomisation, dr_set=dr_set)
     sched = LiftSchedule.from_metadata(meta["lift_schedule"])
     N = env.N
     total = float(sched.total(legs[0]))
@@ -122,6 +133,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     stance = np.ones((N, 4), dtype=bool)
     stance[np.arange(N), leg_of] = False
     calf_min = np.full(N, np.inf)  # lowest a stance calf came to the floor in the excitation, m
+    on_clamp = np.zeros(N)  # stance calves' targets on their upper soft limit, summed over steps
     obs = env.observations()["policy"]
     name_in = sess.get_inputs()[0].name
     for _ in range(n_steps):
@@ -142,6 +154,8 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
             foot_z = env.sensordata[:, env.tm.foot_pos + 2]
             low = env.tm.calf_low_z(env.gravity_b[exc], env.q[exc], foot_z[exc])
             calf_min[exc] = np.minimum(calf_min[exc], np.where(stance[exc], low, np.inf).min(1))
+            pinned = np.isclose(env.target[exc][:, _CALVES], env.soft_hi[_CALVES]) & stance[exc]
+            on_clamp[exc] += pinned.sum(1) / 3.0
             tilt = np.arccos(np.clip(-env.gravity_b[:, 2], -1, 1))
             tilt2[exc] += tilt[exc] ** 2
             rate2[exc] += np.sum(env.ang_vel_b[exc] ** 2, 1)
@@ -157,6 +171,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
                 for i, w in zip(ids, wf, strict=True):
                     omega_f[i].append(w)
     success = alive & ~touched_other & ~touched_lift
+    weak = env.kp_s * env.strength < WEAK_STIFFNESS
     rows = {}
     for leg in legs:
         sel = leg_of == MODEL_LEGS.index(leg)
@@ -184,6 +199,11 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
             # median and 10th percentile over the episodes of their lowest stance calf, mm
             "calf_clearance_mm": [float(1e3 * np.percentile(calf_min[ok], p)) if ok.any()
                                   else float("nan") for p in (50, 10)],
+            "stance_calves_on_clamp": float(on_clamp[ok].sum() / nexc[ok].sum())
+            if ok.any() else float("nan"),
+            "success_weak": {"episodes": int((sel & weak).sum()),
+                             "success": float(success[sel & weak].mean())
+                             if (sel & weak).any() else float("nan")},
         }
     try:  # the command as one types it in the repository
         shown = onnx_path.resolve().relative_to(Path.cwd().resolve()).as_posix()
@@ -192,6 +212,8 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     result = {"policy": onnx_path.name, "path": shown,
               "episodes_per_leg": episodes, "seed": seed,
               "domain_randomisation": not nominal, "dr_off": list(dr_off),
+              "dr_set": {k: list(v) if isinstance(v, tuple) else v
+                         for k, v in (dr_set or {}).items()},
               "randomisation": randomisation,
               "armature_kg_m2": [float(x) for x in env.cfg.dr.armature],
               "motion_s": total, "t_r": sched.t_r, "periods": sched.periods,
@@ -200,7 +222,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     log(table)
     log("\n" + format_failures(result))
     # a diagnosis, not the policy's evaluation
-    write = write and not dr_off and randomisation == "standard"
+    write = write and not dr_off and not dr_set and randomisation == "standard"
     if write and nominal:
         meta["evaluation_nominal"] = result
         write_text_atomic(onnx_path.with_suffix(".json"), json.dumps(meta, indent=1) + "\n")
@@ -317,12 +339,25 @@ def format_failures(r: dict) -> str:
     def words(d: dict) -> str:
         return ", ".join(f"{k} {n}" for k, n in d.items()) or "-"
 
+    def clamp(x: dict) -> str:  # evaluations stored before it was recorded have neither
+        v = x.get("stance_calves_on_clamp")
+        return "" if v is None or np.isnan(v) else f"{100 * v:.0f} %"
+
+    def weak(x: dict) -> str:
+        w = x.get("success_weak")
+        if w is None:
+            return ""
+        return "-" if not w["episodes"] else f"{100 * w['success']:.0f} % of {w['episodes']}"
+
     lines = [("| leg | failed | first failure | in phase | stance-calf clearance (mm), median "
-              "(p10) of the episodes' lowest |"), "| --- | --- | --- | --- | --- |"]
+              "(p10) of the episodes' lowest | stance calves' targets on their soft limit | "
+              f"success with kp x strength < {WEAK_STIFFNESS:g} |"),
+             "| --- | --- | --- | --- | --- | --- | --- |"]
     for leg, x in r["legs"].items():
         med, p10 = x["calf_clearance_mm"]
         lines.append(f"| {leg} | {sum(x['first_failure'].values())} | {words(x['first_failure'])} "
-                     f"| {words(x['first_failure_phase'])} | {med:.1f} ({p10:.1f}) |")
+                     f"| {words(x['first_failure_phase'])} | {med:.1f} ({p10:.1f}) | {clamp(x)} "
+                     f"| {weak(x)} |")
     return "\n".join(lines)
 
 
@@ -332,7 +367,11 @@ def _failures_section(r: dict) -> str:
 What ended the failed episodes (the first event of each: a fall, then the part that touched the
 floor, then the lifted foot set down), in which phase of the schedule, and how close the
 stance calves came to the floor during the excitation (the lowest point of their collision
-hulls; a touch counts from 1 N):
+hulls; a touch counts from 1 N); the share of the excitation's policy steps in which the
+stance calves' targets sit on the soft limit of their extension (the joint limit less 0.05 rad,
+where a calf is a kp spring about that limit: a weaker motor lets it fold); and the success of
+the episodes whose motors were drawn soft (kp scale times motor strength below
+{WEAK_STIFFNESS:g}):
 
 {t}
 """

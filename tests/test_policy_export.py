@@ -164,6 +164,34 @@ def test_dr_off_evaluates_without_the_group_and_writes_nothing(exported, tmp_pat
     assert (d / "pol.json").read_text() == before
 
 
+def test_dr_settings_apply_over_the_randomisation_and_write_nothing(exported, tmp_path):
+    d, _ = exported
+    from policy_train.config import DRConfig
+    from policy_train.evaluate import WEAK_STIFFNESS, evaluate_policy, evaluation_env
+
+    dr = DRConfig().with_settings({"motor_strength": [0.7, 0.8], "push_vel": 0.0})
+    assert dr.motor_strength == (0.7, 0.8) and dr.push_vel == 0.0 and dr.friction == (0.4, 1.25)
+    with pytest.raises(ValueError, match="unknown randomisation field"):
+        DRConfig().with_settings({"wind": 1.0})
+    meta = json.loads((d / "pol.json").read_text())
+    env, _ = evaluation_env(meta, ("FL",), 8, seed=1, dr_set={"motor_strength": (0.7, 0.8)})
+    assert np.all((env.strength >= 0.7) & (env.strength <= 0.8))
+    before = (d / "pol.json").read_text()
+    out = tmp_path / "policy.md"
+    # kp scale <= 1.15 times strength <= 0.78: every episode's motors are soft
+    r = evaluate_policy(d / "pol.onnx", episodes=2, legs=("FL",), results_path=out,
+                        log=lambda s: None, dr_set={"motor_strength": (0.7, 0.78)})
+    assert 1.15 * 0.78 < WEAK_STIFFNESS
+    assert r["dr_set"] == {"motor_strength": [0.7, 0.78]} and not out.exists()
+    assert (d / "pol.json").read_text() == before
+    x = r["legs"]["FL"]
+    assert x["success_weak"] == {"episodes": 2, "success": x["success"]}
+    assert 0.0 <= x["stance_calves_on_clamp"] <= 1.0
+    with pytest.raises(ValueError, match="need the randomisation on"):
+        evaluate_policy(d / "pol.onnx", episodes=1, legs=("FL",), nominal=True,
+                        dr_set={"push_vel": 0.0}, write=False, log=lambda s: None)
+
+
 def test_evaluation_draws_the_standard_ranges_unless_asked_for_the_training_ones(exported,
                                                                                   tmp_path):
     """A policy trained on wider ranges is evaluated on ``DRConfig``'s defaults, as every other
@@ -213,8 +241,13 @@ def test_failures_name_the_first_cause_and_older_evaluations_have_none():
     assert failure_cause(False, [], "RL", True) == "lifted foot down"
     row = {"first_failure": {"stance calf": 9, "fall": 1}, "first_failure_phase": {"excite": 10},
            "calf_clearance_mm": [2.7, -1.5]}
-    t = format_failures({"legs": {"FL": row}})
-    assert "| FL | 10 | stance calf 9, fall 1 | excite 10 | 2.7 (-1.5) |" in t
+    t = format_failures({"legs": {"FL": row}})  # stored before the clamp and soft motors
+    assert "| FL | 10 | stance calf 9, fall 1 | excite 10 | 2.7 (-1.5) |  |  |" in t
+    t = format_failures({"legs": {"FL": {**row, "stance_calves_on_clamp": 0.984,
+                                         "success_weak": {"episodes": 26, "success": 0.8846}},
+                                  "RL": {**row, "stance_calves_on_clamp": 0.5,
+                                         "success_weak": {"episodes": 0, "success": float("nan")}}}})
+    assert "| 2.7 (-1.5) | 98 % | 88 % of 26 |" in t and "| 2.7 (-1.5) | 50 % | - |" in t
     assert format_failures({"legs": {"FL": {"success": 0.8}}}) == ""
 
 
@@ -276,6 +309,21 @@ def test_bad_tripod_option_exits_2_with_one_line(option, value, hint, capsys):
 
     with pytest.raises(SystemExit) as exc:
         main(["tripod", option, value, "--iterations", "1"])
+    assert exc.value.code == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(err) == 1 and hint in err[0]
+
+
+@pytest.mark.parametrize(("extra", "hint"), [
+    (["--dr", "nope=1"], "--dr"), (["--dr", "motor_strength=0.8"], "--dr"),
+    (["--nominal", "--dr", "push_vel=0"], "--nominal"),
+    (["--nominal", "--dr-off", "latency"], "--nominal")])
+def test_bad_eval_option_exits_2_with_one_line(extra, hint, exported, capsys):
+    from policy_train.cli import main
+
+    d, _ = exported
+    with pytest.raises(SystemExit) as exc:
+        main(["eval", str(d / "pol.onnx"), "--episodes", "1", *extra])
     assert exc.value.code == 2
     err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
     assert len(err) == 1 and hint in err[0]
