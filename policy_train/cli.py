@@ -140,6 +140,8 @@ def _distill(a) -> int:
         cfg.lift_leg_weights = a.lift_leg_weights
     if a.hidden is not None:
         cfg.hidden = a.hidden
+    if a.calf_margin is not None:
+        cfg.calf_upper_margin = a.calf_margin
     cfg.dr = {**cfg.dr, **dict(a.dr)}
     if resume is not None and cfg.history < int(resume["distill"]["history"]):
         raise SystemExit(f"--history can only grow on --resume (the checkpoint sees "
@@ -415,6 +417,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="Adam's learning rate (3e-4); on --resume it replaces the checkpoint's")
     d.add_argument("--lift-leg-weights", type=_weights, default=None, metavar="FL,FR,RL,RR")
     d.add_argument("--save-interval", type=_positive, default=None)
+    d.add_argument("--calf-margin", type=_number(-0.3, 0.5, "must be in [-0.3, 0.5) rad"),
+                   default=None, metavar="RAD",
+                   help="clamp the student's calf targets this far inside the calf's extension "
+                        "limit (< 0: beyond it; default: the teacher's 0.05): a stance calf is a "
+                        "kp spring about that clamp")
     d.add_argument("--dr", type=_dr_setting, action="append", default=[], metavar="FIELD=VALUE",
                    help="a DRConfig field over the teacher's, e.g. noise_scale=0,1 (repeatable)")
     d.add_argument("--labels", choices=LABELS, default=None,

@@ -9,7 +9,10 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
 
+import numpy as np
+
 from calib.excitation import ExcitationConfig
+from calib.joints import position_limits
 
 __all__ = ["DR_GROUPS", "DRConfig", "EnvConfig", "PPOConfig", "RewardConfig", "TrainConfig"]
 
@@ -152,6 +155,11 @@ class EnvConfig:
     # 1 is the paper's policy (v1-v7); the distilled v8 sees a few (docs/policy-training.md)
     obs_history: int = 1
     soft_limit_margin: float = 0.05   # rad inside the URDF limits
+    # rad inside the calf's upper (extension) limit where its target is clamped instead (< 0:
+    # beyond it); None: soft_limit_margin. A stance calf sits on this clamp, a kp spring about
+    # it, and soft motors let it fold (docs/policy-training.md, "The stance calves are springs
+    # on the target clamp")
+    calf_upper_margin: float | None = None
     p_no_lift: float = 0.15           # probability that a command lifts no leg
     p_yaw_command: float = 0.5        # with no lift: probability of a yaw-rate command
     yaw_command: float = 0.5          # rad/s, uniform +-
@@ -203,6 +211,17 @@ class EnvConfig:
     plan_pool_file: str | None = None  # precomputed PlanPool (.npz) instead of optimising
     rewards: RewardConfig = field(default_factory=RewardConfig)
     dr: DRConfig = field(default_factory=DRConfig)
+
+    def soft_limits(self, legs) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) clamp of the joint targets, rad, hip / thigh / calf of each of
+        ``legs`` in turn (the env's model order, the JSON's SDK order): the URDF limits less
+        ``soft_limit_margin``, the calves' upper one less ``calf_upper_margin`` if set."""
+        lo = np.concatenate([position_limits(leg)[0] for leg in legs]) + self.soft_limit_margin
+        hi = np.concatenate([position_limits(leg)[1] for leg in legs]) - self.soft_limit_margin
+        if self.calf_upper_margin is not None:
+            calves = 3 * np.arange(len(legs)) + 2
+            hi[calves] += self.soft_limit_margin - self.calf_upper_margin
+        return lo, hi
 
 
 @dataclass

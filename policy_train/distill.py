@@ -63,6 +63,9 @@ class DistillConfig:
     # hidden layer widths of the student; None: the teacher's (v8-v14: 256, 128, 64). On a
     # resume they may grow (widen_hidden)
     hidden: tuple[int, ...] | None = None
+    # the student's EnvConfig.calf_upper_margin (rad; None: the teacher's). The teacher labels
+    # the states the student's clamp leads to, so the student learns its balance there
+    calf_upper_margin: float | None = None
 
 
 LABELS = ("now", "actuation")
@@ -223,6 +226,8 @@ class Distiller:
         e.p_excite = 1.0  # phase 2: every lift plays an excitation
         e.lift_leg_weights = tuple(cfg.lift_leg_weights)
         e.dr = e.dr.with_settings(cfg.dr)
+        if cfg.calf_upper_margin is not None:
+            e.calf_upper_margin = float(cfg.calf_upper_margin)
         sched = self.meta["lift_schedule"]
         e.lift_kp, e.lift_kd = float(sched["kp"]), float(sched["kd"])
         e.lift_feedforward = bool(sched.get("feedforward", False))  # as deploy plays it

@@ -27,7 +27,6 @@ from calib.joints import (
     MODEL_LEGS,
     default_crouch,
     model_to_sdk,
-    position_limits,
     sdk_to_model,
 )
 from deploy.lift_schedule import PHASES, LiftSchedule, blend_accelerations, blend_targets
@@ -198,9 +197,7 @@ class TripodEnv:
         self.subtree_com = b.bind("subtree_com")  # (N, nbody, 3); the base's = whole robot's
         self.gainprm, self.biasprm = b.expand("actuator_gainprm"), b.expand("actuator_biasprm")
         self.default_pose = default_crouch("model")
-        lo = np.concatenate([position_limits(leg)[0] for leg in MODEL_LEGS]) + cfg.soft_limit_margin
-        hi = np.concatenate([position_limits(leg)[1] for leg in MODEL_LEGS]) - cfg.soft_limit_margin
-        self.soft_lo, self.soft_hi = lo, hi
+        self.soft_lo, self.soft_hi = cfg.soft_limits(MODEL_LEGS)
         self.obs_terms = default_terms(model_to_sdk(self.default_pose), "zero")
         if plan_pool is None and cfg.plan_pool_file:
             plan_pool = PlanPool.load(cfg.plan_pool_file)

@@ -134,6 +134,8 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     stance[np.arange(N), leg_of] = False
     calf_min = np.full(N, np.inf)  # lowest a stance calf came to the floor in the excitation, m
     on_clamp = np.zeros(N)  # stance calves' targets on their upper soft limit, summed over steps
+    # as drawn for the episode: an env that falls is reset with new draws
+    weak = env.kp_s * env.strength < WEAK_STIFFNESS
     obs = env.observations()["policy"]
     name_in = sess.get_inputs()[0].name
     for _ in range(n_steps):
@@ -171,7 +173,6 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
                 for i, w in zip(ids, wf, strict=True):
                     omega_f[i].append(w)
     success = alive & ~touched_other & ~touched_lift
-    weak = env.kp_s * env.strength < WEAK_STIFFNESS
     rows = {}
     for leg in legs:
         sel = leg_of == MODEL_LEGS.index(leg)

@@ -101,8 +101,7 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
 
     e = cfg.env
     default = cj.default_crouch("sdk")
-    lo = np.concatenate([cj.position_limits(leg)[0] for leg in cj.SDK_LEGS]) + e.soft_limit_margin
-    hi = np.concatenate([cj.position_limits(leg)[1] for leg in cj.SDK_LEGS]) - e.soft_limit_margin
+    lo, hi = e.soft_limits(cj.SDK_LEGS)
     sched = LiftSchedule(shift=e.shift_s, lift=e.lift_s, hold=e.hold_s, lower=e.lower_s,
                          kp=e.lift_kp, kd=e.lift_kd, t_r=EVAL_T_R, n_basis=e.n_basis,
                          periods=EVAL_PERIODS, seed=0, ground_clearance=e.ground_clearance,

@@ -190,14 +190,23 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     np.testing.assert_allclose(runner.act(f[2]), sess.run(None, {"obs": np.r_[f[2], f[2]][None]})[0][0],
                                atol=1e-6)
     # resume continues the run's iterations, at the learning rate asked for (the optimiser's
-    # saved state carries the old one); its history may grow, not shrink
+    # saved state carries the old one); its history may grow, not shrink. --calf-margin moves
+    # the student's calf clamp, and the export carries it to deploy
     p = subprocess.run(base + ["--resume", str(run / "model_2.pt"), "--iterations", "1",
-                               "--learning-rate", "5e-5"],
+                               "--learning-rate", "5e-5", "--calf-margin", "0.01",
+                               "--export", str(tmp_path / "moved")],
                        capture_output=True, text=True, timeout=300, check=False)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     assert "resumed at iteration 2" in p.stdout and "it     3" in p.stdout
     ckpt = torch.load(run / "model_3.pt", weights_only=False)
     assert [g["lr"] for g in ckpt["optimizer_state_dict"]["param_groups"]] == [5e-5]
+    assert ckpt["distill"]["calf_upper_margin"] == 0.01
+    assert ckpt["train_config"]["env"]["calf_upper_margin"] == 0.01
+    moved = PolicyMeta.load(tmp_path / "moved.json")
+    calves = [2, 5, 8, 11]
+    np.testing.assert_allclose(moved.soft_upper[calves], runner.meta.soft_upper[calves] + 0.04)
+    np.testing.assert_allclose(np.delete(moved.soft_upper, calves),
+                               np.delete(runner.meta.soft_upper, calves))
     assert ckpt["distill"]["learning_rate"] == 5e-5
     p = subprocess.run(base + ["--resume", str(run / "model_2.pt"), "--history", "1"],
                        capture_output=True, text=True, timeout=300, check=False)
@@ -232,6 +241,7 @@ def test_cli_trains_resumes_and_exports_a_history_policy(tmp_path):
     (["--dr", "nope=1"], "--dr"),
     (["--labels", "later"], "--labels"),
     (["--hidden", "512,x"], "--hidden"),
+    (["--calf-margin", "-1"], "--calf-margin"),
 ])
 def test_bad_inputs_exit_nonzero_with_one_line(tmp_path, args, hint):
     p = subprocess.run([sys.executable, "-m", "policy_train.cli", "distill", "--iterations", "1",

@@ -42,6 +42,32 @@ def test_action_is_delta_target_in_sdk_order():
     np.testing.assert_array_equal(e.observations()["critic"][:, 33:45], e.actions)
 
 
+def test_calf_upper_margin_moves_only_the_calves_extension_clamp():
+    from calib.joints import MODEL_LEGS, SDK_LEGS, position_limits
+
+    lo0, hi0 = EnvConfig().soft_limits(SDK_LEGS)
+    np.testing.assert_allclose(hi0[2], position_limits("FR")[1][2] - 0.05)
+    lo, hi = EnvConfig(calf_upper_margin=-0.02).soft_limits(SDK_LEGS)
+    calves = [2, 5, 8, 11]
+    np.testing.assert_allclose(hi[calves], hi0[calves] + 0.07)  # 0.02 beyond the limit
+    np.testing.assert_array_equal(np.delete(hi, calves), np.delete(hi0, calves))
+    np.testing.assert_array_equal(lo, lo0)
+    cfg = TrainConfig()
+    cfg.env.calf_upper_margin = 0.01
+    assert TrainConfig.from_dict(cfg.to_dict()).env.calf_upper_margin == 0.01
+    # the env clamps the targets there: a policy pushing every calf up ends on the clamp
+    e = TripodEnv(EnvConfig(num_envs=1, plans_per_leg=1, seed=2, threads=1, calf_upper_margin=0.01,
+                            p_reference_start=0.0))
+    e.lift_leg[:] = -1  # no override in this step
+    a = np.zeros((1, 12))
+    a[:, calves] = 1.0  # 0.1 rad per step, from the start's -1.3 to -1.6 rad
+    for _ in range(10):
+        e.step(a)
+        e.lift_leg[:] = -1
+    np.testing.assert_allclose(e.target[0, [2, 5, 8, 11]],
+                               EnvConfig(calf_upper_margin=0.01).soft_limits(MODEL_LEGS)[1][calves])
+
+
 def test_actuation_latency_holds_the_targets_that_many_physics_steps():
     """A target reaches the motors ``latency`` physics steps after the policy step that issued
     it, also past one policy step (4 physics steps); the older targets fill the gap."""
