@@ -369,8 +369,8 @@ What ended the failed episodes (the first event of each: a fall, then the part t
 floor, then the lifted foot set down), in which phase of the schedule, and how close the
 stance calves came to the floor during the excitation (the lowest point of their collision
 hulls; a touch counts from 1 N); the share of the excitation's policy steps in which the
-stance calves' targets sit on the soft limit of their extension (the joint limit less 0.05 rad,
-where a calf is a kp spring about that limit: a weaker motor lets it fold); and the success of
+stance calves' targets sit on the clamp of their extension (the upper `soft_limits` of the JSON,
+where a calf is a kp spring about that clamp: a weaker motor lets it fold); and the success of
 the episodes whose motors were drawn soft (kp scale times motor strength below
 {WEAK_STIFFNESS:g}):
 
