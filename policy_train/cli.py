@@ -22,6 +22,7 @@ Checkpoints go to ``runs/<run>/model_<it>.pt`` (``runs/`` is not committed).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -169,7 +170,8 @@ def _distill(a) -> int:
 def _export(a) -> int:
     from policy_train.export import export_policy, train_state_path
 
-    onnx_path, json_path = export_policy(a.checkpoint, a.out, a.legs, a.mirror_legs)
+    onnx_path, json_path = export_policy(a.checkpoint, a.out, a.legs, a.mirror_legs,
+                                         lift_gains=a.lift_gains)
     print(f"exported {onnx_path}, {json_path} and {train_state_path(onnx_path)}")
     return 0
 
@@ -298,6 +300,17 @@ def _leg_list(text: str) -> tuple[str, ...]:
         return tuple(check_leg(g.strip()) for g in text.split(","))
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _gains(text: str) -> tuple[float, float]:
+    """argparse type: ``KP,KD``, both positive (N m/rad, N m s/rad)."""
+    try:
+        kp, kd = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give KP,KD, e.g. 80,2") from None
+    if not (math.isfinite(kp) and math.isfinite(kd) and kp > 0 and kd > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: KP and KD must be positive")
+    return kp, kd
 
 
 def _dr_setting(text: str) -> tuple[str, object]:
@@ -445,6 +458,10 @@ def main(argv: list[str] | None = None) -> int:
     e.add_argument("--mirror-legs", type=_leg_list, default=None,
                    help="legs played as the mirror image of the opposite side's lift, e.g. FR "
                         "(FR as FL mirrored; the robot and the task are left-right symmetric)")
+    e.add_argument("--lift-gains", type=_gains, default=None, metavar="KP,KD",
+                   help="the lifted leg's PD gains in the JSON's lift_schedule (default: the "
+                        "training's, 40,1); stiffer gains track the plan through joint damping "
+                        "the training did not model")
     v = sub.add_parser("eval", help="evaluate an exported policy (onnxruntime)")
     v.add_argument("onnx")
     v.add_argument("--episodes", type=int, default=100)

@@ -139,14 +139,16 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
 
 
 def export_policy(checkpoint, out_stem: str | Path,
-                  legs=None, mirror_legs=None) -> tuple[Path, Path]:
+                  legs=None, mirror_legs=None, lift_gains=None) -> tuple[Path, Path]:
     """Write ``<out_stem>.onnx``, ``<out_stem>.json`` and the training state
     ``<out_stem>.train.pt`` (:func:`train_state_path`) from a training checkpoint, or from
     the weight average of several of one run (a list: :func:`average_checkpoints`; the JSON's
     ``averaged_iterations``); legs: the JSON's ``legs`` (the legs deploy may lift with it;
     None: all four). mirror_legs: legs whose lifts the graph plays as the mirror image of the
     opposite side's (:class:`policy_train.symmetry.MirroredLegsActor`; the JSON's
-    ``mirrored_legs``); None on a distillation checkpoint: its teacher's."""
+    ``mirrored_legs``); None on a distillation checkpoint: its teacher's. lift_gains: (kp, kd)
+    of the lifted leg in the JSON's ``lift_schedule`` (None: the training's); the policy never
+    commands that leg, so its gains are a deploy setting the evaluation then measures."""
     import onnx
     import onnxruntime as ort
 
@@ -169,6 +171,11 @@ def export_policy(checkpoint, out_stem: str | Path,
         meta["distilled_from"] = {k: d["distill"].get(k) for k in (
             "teacher_name", "teacher_commit", "history")}
         meta["distilled_from"]["labels"] = d["distill"].get("labels", "now")
+    if lift_gains is not None:
+        kp, kd = (float(g) for g in lift_gains)
+        if not (np.isfinite(kp) and np.isfinite(kd) and kp > 0 and kd > 0):
+            raise ValueError(f"lift gains must be positive, got kp {kp}, kd {kd}")
+        meta["lift_schedule"] = {**meta["lift_schedule"], "kp": kp, "kd": kd}
     if mirror_legs:
         pairs = {g: mirror_source(g) for g in mirror_legs}
         actor = MirroredLegsActor(actor, meta["observation"]["terms"], pairs,

@@ -16,7 +16,9 @@ with a :class:`Scenario`'s perturbations drawn afresh per episode:
   observation noise; the other links' masses and the armature are left nominal);
 * the others: ``training`` with one thing outside its ranges (a heavier payload, a slipperier
   floor, a longer latency, weaker motors, harder pushes, twice the sensor noise), or not
-  modelled in training at all (joint dry friction), or without the sensor noise.
+  modelled in training at all (joint dry friction; MuJoCo Menagerie's Go2 joint model, whose
+  damping, rotor inertia and dry friction a checker's own simulation may well carry), or
+  without the sensor noise.
 
 An episode succeeds as the evaluation's do: no fall over the whole run, and over the hold and
 the excitation no body but a foot on the floor and the lifted foot never down
@@ -41,7 +43,15 @@ import numpy as np
 from calib.atomic import write_text_atomic
 from calib.excitation import covariance_kappa
 from calib.joints import LEGS, check_leg, model_indices
-from sim.effects import ActuationLatency, CoulombFriction, FootFriction, LinkMass, MotorStrength
+from sim.effects import (
+    ActuationLatency,
+    Armature,
+    CoulombFriction,
+    FootFriction,
+    LinkMass,
+    MotorStrength,
+    ViscousFriction,
+)
 
 __all__ = ["SCENARIOS", "EpisodeResult", "PairedScenario", "Scenario", "compare",
            "load_results", "render_comparison", "render_markdown", "run_episode", "run_transfer",
@@ -60,7 +70,8 @@ class Scenario:
     base_mass_add: kg on the base link (mass and inertia scaled). base_com_shift: +- m per axis
     of the base's centre of mass. friction: foot-floor sliding friction. motor_strength: scale of
     every motor's torque. latency_s: actuation latency, s. joint_friction: Coulomb friction, N m,
-    on every joint. noise_scale: times the training's observation noise (0: none). push_vel:
+    on every joint. joint_damping: viscous friction, N m s/rad, and armature: rotor inertia,
+    kg m^2, on every joint. noise_scale: times the training's observation noise (0: none). push_vel:
     m/s of the pushes (0: none), every 4-8 s.
     """
 
@@ -72,6 +83,8 @@ class Scenario:
     motor_strength: tuple[float, float] | None = None
     latency_s: tuple[float, float] | None = None
     joint_friction: tuple[float, float] | None = None
+    joint_damping: tuple[float, float] | None = None
+    armature: tuple[float, float] | None = None
     noise_scale: float = 0.0
     push_vel: float = 0.0
 
@@ -97,6 +110,10 @@ class Scenario:
             effects.append(ActuationLatency(u(self.latency_s)))
         if self.joint_friction is not None:
             effects.append(CoulombFriction(u(self.joint_friction)))
+        if self.joint_damping is not None:
+            effects.append(ViscousFriction(u(self.joint_damping)))
+        if self.armature is not None:
+            effects.append(Armature(u(self.armature)))
         dr = DRConfig()
         noise = {fld: self.noise_scale * getattr(dr, fld) for _, fld in OBS_NOISE}
         dist = Disturbance(**noise, push_vel=self.push_vel, push_interval=dr.push_interval,
@@ -130,6 +147,10 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
     _training_like("shoves", "training, pushes 0.6 m/s", push_vel=0.6),
     _training_like("noisy", "training, twice the sensor noise", noise_scale=2.0),
     _training_like("quiet", "training without sensor noise", noise_scale=0.0),
+    # appended last: a scenario's draws are seeded by its place in this list
+    _training_like("damped_joints", "training on MuJoCo Menagerie's Go2 joints: damping 2 N m s/rad, "
+                   "armature 0.01 kg m^2, dry friction 0.2 N m (none in the standard ranges)",
+                   joint_damping=(2.0, 2.0), armature=(0.01, 0.01), joint_friction=(0.2, 0.2)),
 ]}
 
 

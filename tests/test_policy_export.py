@@ -297,6 +297,38 @@ def test_mirrored_legs_export_plays_the_other_side_mirrored(exported, tmp_path):
               "--mirror-legs", "XX"])
 
 
+def test_lift_gains_go_to_the_json_and_the_evaluation_plays_them(exported, tmp_path):
+    """`export --lift-gains 80,2`: the JSON's lift_schedule carries them, the rest as the
+    training's, and the evaluation's lifted leg is driven with them."""
+    from policy_train.cli import main
+    from policy_train.evaluate import evaluation_env
+
+    d, _ = exported
+    assert main(["export", str(d / "run" / "model_2.pt"), "--out", str(tmp_path / "g"),
+                 "--lift-gains", "80,2"]) == 0
+    meta = json.loads((tmp_path / "g.json").read_text())
+    plain = json.loads((d / "pol.json").read_text())
+    assert (meta["lift_schedule"]["kp"], meta["lift_schedule"]["kd"]) == (80.0, 2.0)
+    assert {**meta["lift_schedule"], "kp": 40.0, "kd": 1.0} == plain["lift_schedule"]
+    assert LiftSchedule.from_metadata(meta["lift_schedule"]).kp == 80.0
+    env, _ = evaluation_env(meta, ("FL",), 1, seed=1)
+    assert (env.cfg.lift_kp, env.cfg.lift_kd) == (80.0, 2.0)
+
+
+@pytest.mark.parametrize("value", ["80", "0,2", "80,-1", "a,b", "nan,1"])
+def test_bad_lift_gains_exit_2_with_one_line(value, exported, tmp_path, capsys):
+    from policy_train.cli import main
+
+    d, _ = exported
+    with pytest.raises(SystemExit) as exc:
+        main(["export", str(d / "run" / "model_2.pt"), "--out", str(tmp_path / "g"),
+              f"--lift-gains={value}"])
+    assert exc.value.code == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(err) == 1 and "--lift-gains" in err[0]
+    assert not (tmp_path / "g.json").exists()
+
+
 @pytest.mark.parametrize(("option", "value", "hint"), [
     *[("--lift-leg-weights", w, "FL,FR,RL,RR") for w in ("1,2", "1,1,1,-1", "0,0,0,0", "a,b,c,d")],
     *[("--dr", v, "--dr") for v in ("joint_friction", "nope=1", "joint_friction=0.4,0.1",
