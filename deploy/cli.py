@@ -82,8 +82,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="DIR", default="calibration",
                    help="output folder (default calibration/)")
     p.add_argument("--policy", metavar="PATH",
-                   help="policy JSON for every leg (default: per leg, the newest "
-                        "policies/*.json whose 'legs' list has it)")
+                   help="policy JSON (or the ONNX beside it) for every leg (default: per leg, "
+                        "the newest policies/*.json whose 'legs' list has it)")
     p.add_argument("--periods", type=int, metavar="N",
                    help="override the policy's excitation periods (shorter runs; fewer "
                         "samples)")

@@ -64,11 +64,18 @@ class PolicyMeta:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> PolicyMeta:
+        """The metadata at ``path``; an ``.onnx`` path means the JSON beside it, as every other
+        command names a policy by its ONNX."""
         p = Path(path)
+        if p.suffix == ".onnx":
+            p = p.with_suffix(".json")
         try:
             d = json.loads(p.read_text(encoding="utf-8"))
         except OSError as e:
             raise ValueError(f"cannot read policy metadata {str(p)!r}: {e.strerror or e}") from None
+        except UnicodeDecodeError:
+            raise ValueError(f"policy metadata {str(p)!r} is not JSON text (name the policy's "
+                             ".json or .onnx)") from None
         except json.JSONDecodeError as e:
             raise ValueError(f"policy metadata {str(p)!r} is not valid JSON: {e.msg}") from None
         try:

@@ -57,6 +57,18 @@ def test_bad_metadata_is_refused_with_a_reason(tmp_path, mutate, msg):
         PolicyMeta.load(p)
 
 
+def test_policy_named_by_its_onnx(policy_json, tmp_path):
+    """Every other command names a policy by its ONNX: the JSON beside it is read; a file
+    that is not JSON text is refused with a reason, not a decoding error."""
+    meta = PolicyMeta.load(policy_json.with_suffix(".onnx"))
+    assert meta.path == policy_json
+    assert PolicyRunner(meta).act(np.zeros(49, np.float32)).shape == (12,)
+    blob = tmp_path / "p.json"
+    blob.write_bytes(bytes(range(256)))
+    with pytest.raises(ValueError, match="not JSON text"):
+        PolicyMeta.load(blob)
+
+
 def test_missing_network_and_newest_policy(tmp_path):
     old = write_hold_policy(tmp_path, name="old")
     new = write_hold_policy(tmp_path, name="new")
