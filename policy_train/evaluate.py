@@ -384,7 +384,8 @@ def _report(r: dict, meta: dict, table: str) -> str:
 Policy `{r['policy']}` (commit `{meta.get('commit')}`, seed {meta.get('seed')},
 {_training(meta)}{_averaged(meta)}). Produced by
 `a2i-train eval {r.get('path', 'policies/' + r['policy'])} --episodes {r['episodes_per_leg']}` (seed {r['seed']}):
-the ONNX through onnxruntime, the JSON's observation terms, action and lift schedule.
+the ONNX through onnxruntime, the JSON's observation terms, action and lift schedule (the
+lifted leg at kp {meta['lift_schedule']['kp']:g} / kd {meta['lift_schedule']['kd']:g}{_lift_gains_note(meta)}).
 
 Each episode: the standard domain randomisation (`DRConfig`'s defaults, the same for
 every policy whatever ranges it trained on: masses, centre of mass, {_armature(r)},
@@ -414,6 +415,16 @@ the calibration motions (paper's two phases).
 | --- | --- | --- | --- | --- |
 {_curve(meta)}
 """
+
+
+def _lift_gains_note(meta: dict) -> str:
+    """Whether the lifted leg's gains are the training's: the export may set others."""
+    env = meta.get("train_config", {}).get("env", {})
+    kp, kd = env.get("lift_kp"), env.get("lift_kd")
+    sched = meta["lift_schedule"]
+    if kp is None or (kp == sched["kp"] and kd == sched["kd"]):
+        return ""
+    return f"; trained at {kp:g} / {kd:g}"
 
 
 def _curve(meta: dict) -> str:

@@ -313,6 +313,15 @@ def test_lift_gains_go_to_the_json_and_the_evaluation_plays_them(exported, tmp_p
     assert LiftSchedule.from_metadata(meta["lift_schedule"]).kp == 80.0
     env, _ = evaluation_env(meta, ("FL",), 1, seed=1)
     assert (env.cfg.lift_kp, env.cfg.lift_kd) == (80.0, 2.0)
+    # the page says which gains it played, and that they are not the training's
+    from policy_train.evaluate import evaluate_policy
+    out = tmp_path / "policy.md"
+    evaluate_policy(tmp_path / "g.onnx", episodes=1, legs=("FL",), results_path=out,
+                    log=lambda s: None)
+    assert "lifted leg at kp 80 / kd 2; trained at 40 / 1" in out.read_text()
+    evaluate_policy(d / "pol.onnx", episodes=1, legs=("FL",), results_path=out,
+                    log=lambda s: None)
+    assert "lifted leg at kp 40 / kd 1)" in out.read_text()
 
 
 @pytest.mark.parametrize("value", ["80", "0,2", "80,-1", "a,b", "nan,1"])
