@@ -144,8 +144,8 @@ class LiftSchedule:
             v = getattr(self, k)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{k} must be a positive duration (s), got {v}")
-        if not (self.kp > 0 and self.kd >= 0):
-            raise ValueError("kp must be > 0 and kd >= 0")
+        if not (np.isfinite(self.kp) and self.kp > 0 and np.isfinite(self.kd) and self.kd >= 0):
+            raise ValueError(f"kp must be > 0 and kd >= 0 (finite), got kp {self.kp}, kd {self.kd}")
         if not (np.isfinite(self.ground_clearance) and self.ground_clearance >= 0):
             raise ValueError(f"ground_clearance must be >= 0 m, got {self.ground_clearance}")
         if not isinstance(self.feedforward, bool):

@@ -22,7 +22,6 @@ Checkpoints go to ``runs/<run>/model_<it>.pt`` (``runs/`` is not committed).
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from pathlib import Path
@@ -303,13 +302,17 @@ def _leg_list(text: str) -> tuple[str, ...]:
 
 
 def _gains(text: str) -> tuple[float, float]:
-    """argparse type: ``KP,KD``, both positive (N m/rad, N m s/rad)."""
+    """argparse type: ``KP,KD`` (N m/rad, N m s/rad), as the lift schedule accepts them."""
+    from deploy.lift_schedule import LiftSchedule
+
     try:
         kp, kd = (float(x) for x in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r}: give KP,KD, e.g. 80,2") from None
-    if not (math.isfinite(kp) and math.isfinite(kd) and kp > 0 and kd > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: KP and KD must be positive")
+    try:
+        LiftSchedule(kp=kp, kd=kd)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(f"{text!r}: {e}") from None
     return kp, kd
 
 
@@ -459,7 +462,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="legs played as the mirror image of the opposite side's lift, e.g. FR "
                         "(FR as FL mirrored; the robot and the task are left-right symmetric)")
     e.add_argument("--lift-gains", type=_gains, default=None, metavar="KP,KD",
-                   help="the lifted leg's PD gains in the JSON's lift_schedule (default: the "
+                   help="the lifted leg's PD gains in the JSON's lift_schedule, KP > 0, KD >= 0 (default: the "
                         "training's, 40,1); stiffer gains track the plan through joint damping "
                         "the training did not model")
     v = sub.add_parser("eval", help="evaluate an exported policy (onnxruntime)")

@@ -173,9 +173,8 @@ def export_policy(checkpoint, out_stem: str | Path,
         meta["distilled_from"]["labels"] = d["distill"].get("labels", "now")
     if lift_gains is not None:
         kp, kd = (float(g) for g in lift_gains)
-        if not (np.isfinite(kp) and np.isfinite(kd) and kp > 0 and kd > 0):
-            raise ValueError(f"lift gains must be positive, got kp {kp}, kd {kd}")
         meta["lift_schedule"] = {**meta["lift_schedule"], "kp": kp, "kd": kd}
+        LiftSchedule.from_metadata(meta["lift_schedule"])  # deploy's rule for the gains
     if mirror_legs:
         pairs = {g: mirror_source(g) for g in mirror_legs}
         actor = MirroredLegsActor(actor, meta["observation"]["terms"], pairs,

@@ -53,6 +53,9 @@ def test_metadata_round_trip_and_errors(sched):
         LiftSchedule.from_metadata({**d, "bogus": 1})
     with pytest.raises(ValueError):
         LiftSchedule(shift=0.0)
+    for kp, kd in ((0.0, 1.0), (40.0, -1.0), (float("inf"), 1.0), (40.0, float("nan"))):
+        with pytest.raises(ValueError, match="kp must be > 0 and kd >= 0"):
+            LiftSchedule(kp=kp, kd=kd)
     with pytest.raises(ValueError):
         sched.targets("FL", -1.0, Q_START)
     with pytest.raises(ValueError):

@@ -324,7 +324,7 @@ def test_lift_gains_go_to_the_json_and_the_evaluation_plays_them(exported, tmp_p
     assert "lifted leg at kp 40 / kd 1)" in out.read_text()
 
 
-@pytest.mark.parametrize("value", ["80", "0,2", "80,-1", "a,b", "nan,1"])
+@pytest.mark.parametrize("value", ["80", "0,2", "80,-1", "a,b", "nan,1", "inf,2"])
 def test_bad_lift_gains_exit_2_with_one_line(value, exported, tmp_path, capsys):
     from policy_train.cli import main
 
