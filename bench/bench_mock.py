@@ -43,7 +43,8 @@ def hold_stand() -> bytes:
 
 
 def lockstep_inprocess(sim_s: float, readers: bool) -> float:
-    cfg = MockConfig(listen=[], clock="lockstep", initial_pose="standing", foot_imus=IMUS_400)
+    cfg = MockConfig(listen=[], clock="lockstep", initial_pose="standing", foot_imus=IMUS_400,
+                     lockstep_quantum_s=0.02)  # a 50 Hz client: one 20 ms quantum per command
     cmd = hold_stand()
     with MockRobot(cfg, transport=False) as r:
         rd = [SerialImuReader(p).start() for p in r.imu_ports.values()] if readers else []
@@ -63,7 +64,8 @@ def lockstep_inprocess(sim_s: float, readers: bool) -> float:
 
 def lockstep_zenoh(sim_s: float) -> float:
     ep = free_endpoint()
-    cfg = MockConfig(listen=[ep], clock="lockstep", initial_pose="standing", foot_imus=IMUS_400)
+    cfg = MockConfig(listen=[ep], clock="lockstep", initial_pose="standing", foot_imus=IMUS_400,
+                     lockstep_quantum_s=0.02)
     cmd = hold_stand()
     robot = MockRobot(cfg).start()
     client = Transport(TransportConfig(connect=[ep])).open()

@@ -34,7 +34,13 @@ import numpy as np
 from calib.excitation import ExcitationConfig, ExcitationPlan, plan_excitation
 from calib.joints import EFFORT_LIMIT, check_leg
 
-__all__ = ["PHASES", "LegTarget", "LiftSchedule", "blend_accelerations", "blend_targets"]
+__all__ = ["COMMANDS_PER_TICK", "PHASES", "LegTarget", "LiftSchedule", "blend_accelerations",
+           "blend_targets"]
+
+COMMANDS_PER_TICK = 5
+"""LowCmd_ frames per 50 Hz policy tick (250 Hz, 4 ms apart), each with the lifted leg's
+targets at its own time: deploy's default (``deploy.session.SessionConfig.commands_per_tick``),
+and how the free-base runs of :mod:`policy_train.policy_motion` play the schedule."""
 
 PHASES: tuple[str, ...] = ("shift", "lift", "hold", "excite", "lower", "done")
 

@@ -5,7 +5,9 @@ Threads:
 * the control loop (the caller's thread): each tick drains the queue of every LowState received
   since the last tick (500 Hz; all of them are recorded, the newest one drives the tick),
   records the joystick stream, runs the supervisor and the state machine (observation, ONNX,
-  targets), publishes one LowCmd_ (CRC) and records it. Only this thread writes the
+  targets), publishes the tick's ``commands_per_tick`` LowCmd_ frames (CRC; the first at once,
+  the others ``dt / commands_per_tick`` apart, the lifted leg's target moving between them)
+  and records each. Only this thread writes the
   ``lowstate``, ``lowcmd`` and ``wireless`` rings;
 * one :class:`hw.imu_serial.SerialImuReader` thread per serial port, each the only writer of
   its legs' ``imu/<LEG>`` rings;
@@ -13,7 +15,8 @@ Threads:
 
 Ticking: ``realtime`` on absolute 20 ms deadlines of the monotonic clock
 (:class:`deploy.timing.DeadlineTicker`); ``lockstep`` (the mock's deterministic clock, which
-advances one quantum per LowCmd_) on the arrival of the LowState of the expected tick.
+advances one quantum, ``dt / commands_per_tick``, per LowCmd_) on the arrival of the LowState
+of the expected tick, the tick's frames sent back to back.
 """
 
 from __future__ import annotations
@@ -76,9 +79,10 @@ class DeployConfig:
 
     legs: calibrated in turn (empty + joystick: wait for combos). connect: Zenoh endpoints of
     the robot's bridge (or the mock). imus: foot IMUs. clock: "realtime" or "lockstep" (tick
-    source and time base, see :mod:`deploy.timebase`). lockstep_quantum_ms: how far the
-    LowState tick advances per LowCmd_ in lockstep; lockstep_wait_s: longest wait for it before
-    the tick counts as stale. first_lowstate_s: longest wait for the robot at start.
+    source and time base, see :mod:`deploy.timebase`; in lockstep the mock must advance
+    ``dt / session.commands_per_tick`` per LowCmd_, its ``lockstep_quantum_s``).
+    lockstep_wait_s: longest wait for the tick's LowState before the tick counts as stale.
+    first_lowstate_s: longest wait for the robot at start.
     record_seconds: recorder history (s); imu_hz: recorder rate of each foot IMU.
     truth: leg -> (R_I^F, t_d) of a simulated mounting (reports errors against it).
     final_ticks: ticks the final (damping) command is repeated before the loop returns.
@@ -95,7 +99,6 @@ class DeployConfig:
     imu_protocol: str = "a2i"
     imu_baud: int = 921600
     clock: str = "realtime"
-    lockstep_quantum_ms: int = 20
     lockstep_wait_s: float = 0.5
     first_lowstate_s: float = 5.0
     record_seconds: float = 180.0
@@ -207,7 +210,9 @@ class DeployRunner:
             if leg in self.metas:
                 self.metas[leg].schedule.prepare(leg)
             self._kin[leg] = LegKinematics.from_urdf(leg=leg)
+        self.n_cmd = config.session.commands_per_tick
         rec_cfg = RecorderConfig(seconds=config.record_seconds, imu_hz=config.imu_hz,
+                                 lowcmd_hz=self.n_cmd / self.dt,
                                  legs=tuple(sorted(imu_legs)) or ("FL",))
         self.recorder = Recorder(rec_cfg)
         self.supervisor = SafetySupervisor(config.supervisor, meta.soft_lower, meta.soft_upper,
@@ -330,6 +335,38 @@ class DeployRunner:
         if self.publisher.forced_over:
             log.warning("publishing rt/lowcmd over another publisher: %s",
                         self.publisher.forced_over)
+        if c.clock == "lockstep":
+            self._check_quantum()
+
+    def _check_quantum(self) -> None:
+        """Lockstep: one damping frame, and the robot's answer says how far it advances per
+        LowCmd_ (read once it has gone quiet: its idle repeat, or ``lockstep_wait_s`` of
+        silence). A robot on another quantum would play the ticks at the wrong speed."""
+        self._ingest(self.ls_queue.drain())
+        t0 = self.last_tick_ms
+        self._publish(self._damp_frame())
+        got: list = []
+        newest = t0
+        while True:
+            s = self.ls_queue.get(timeout=self.cfg.lockstep_wait_s)
+            if s is None:
+                break
+            got.append(s)
+            tick = _tick_of(s.payload)
+            if tick == newest and newest != t0:
+                break  # the idle repeat of the quantum's last state
+            newest = max(newest, tick)
+        self._ingest(got)
+        want = self.dt * 1e3 / self.n_cmd
+        if abs((newest - t0) - want) > 1e-6:
+            raise DeployError(
+                f"the lockstep robot advanced {newest - t0} ms on one LowCmd_; this loop sends "
+                f"{self.n_cmd} per {self.dt * 1e3:g} ms tick, so it must advance {want:g} ms "
+                f"(the mock's lockstep_quantum_s {want / 1e3:g})")
+
+    def _damp_frame(self) -> Command:
+        return Command(np.zeros(12), np.zeros(12), np.zeros(12),
+                       np.full(12, self.cfg.session.damp_kd), np.zeros(12), "damp")
 
     def close(self) -> None:
         for r in self.readers:
@@ -422,6 +459,24 @@ class DeployRunner:
         self.recorder.record_lowcmd(time.monotonic_ns(), raw, cmd.q, cmd.dq, cmd.kp, cmd.kd,
                                     cmd.tau)
 
+    def _publish_rest(self, cmd: Command, deadline_ns: int, lockstep: bool) -> None:
+        """The tick's later frames, after ``cmd`` itself: its substeps (or ``cmd`` again) on
+        the sub-deadlines ``deadline + i * dt / n`` (lockstep: back to back, each a quantum).
+        A frame whose successor is already due is skipped (counted), not sent late."""
+        n = self.n_cmd
+        frames = list(cmd.substeps) or [cmd] * (n - 1)
+        sub_ns = round(self.dt * 1e9 / n)
+        for i, f in enumerate(frames, start=1):
+            if not lockstep:
+                due = deadline_ns + i * sub_ns
+                now = time.monotonic_ns()
+                if i < n - 1 and now >= due + sub_ns:
+                    self.stats.frames_skipped += 1
+                    continue
+                if now < due:
+                    time.sleep((due - now) * 1e-9)
+            self._publish(f)
+
     def _progress(self) -> None:
         if self.cfg.progress is None:
             return
@@ -473,8 +528,7 @@ class DeployRunner:
         if self.publisher is None:
             return
         self.session.enter_damp(cause[:200])
-        damp = Command(np.zeros(12), np.zeros(12), np.zeros(12),
-                       np.full(12, self.cfg.session.damp_kd), np.zeros(12), "damp")
+        damp = self._damp_frame()
         for _ in range(max(1, self.cfg.final_ticks)):
             try:
                 self._publish(damp)
@@ -527,9 +581,10 @@ class DeployRunner:
                 window_mark=self._window_mark())
             cmd = sess.step(inp)
             self._publish(cmd)
-            if lockstep and self.last_tick_ms is not None:
-                expected = self.last_tick_ms + c.lockstep_quantum_ms
             end = time.monotonic_ns()
+            self._publish_rest(cmd, deadline, lockstep)
+            if lockstep and self.last_tick_ms is not None:
+                expected = self.last_tick_ms + round(self.dt * 1e3)
             self.stats.add((start - deadline) * 1e-9, (end - start) * 1e-9)
             self.ticks += 1
             if ticker is not None:

@@ -45,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib.joints import LIE_POSE_LEG, check_leg, full_pose, sdk_indices
+from deploy.lift_schedule import COMMANDS_PER_TICK
 from deploy.observation import build_observation, projected_gravity
 from deploy.supervisor import DAMP_KD, SafetySupervisor
 
@@ -87,6 +88,16 @@ class SessionConfig:
     sit_s: float = 2.0
     sit_hold_s: float = 0.5
     damp_kd: float = DAMP_KD
+    # LowCmd_ frames per tick. The motors hold each frame's target, so a lifted leg whose
+    # target moved once per 20 ms tick lagged its plan in a 20 ms staircase: at its kp 80 that
+    # shook the tripod (nominal base rate 0.11-0.15 rad/s against 0.07-0.09 with the target
+    # moved every 4 ms; docs/deploy.md). Training moves it every 5 ms physics step.
+    commands_per_tick: int = COMMANDS_PER_TICK
+
+    def __post_init__(self) -> None:
+        n = self.commands_per_tick
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ValueError(f"commands_per_tick must be an integer >= 1, got {n!r}")
 
 
 @dataclass
@@ -108,7 +119,12 @@ class TickInput:
 
 @dataclass
 class Command:
-    """The LowCmd_ content of one tick (12,) each, and what produced it."""
+    """The LowCmd_ content at the start of a tick (12,) each, and what produced it.
+
+    substeps: the frames for the rest of the tick, sent ``dt / commands_per_tick`` apart
+    (the lifted leg's schedule evaluated at their times, every other motor as here); empty:
+    this frame is repeated.
+    """
 
     q: np.ndarray
     dq: np.ndarray
@@ -118,6 +134,7 @@ class Command:
     source: str = ""
     obs: np.ndarray | None = None
     actions: np.ndarray | None = None
+    substeps: tuple[Command, ...] = ()
 
 
 @dataclass
@@ -363,11 +380,13 @@ class Session:
         gravity = projected_gravity(inp.quat) if inp.quat is not None else None
         return sched.targets(lift_leg, t_lift, q_start, gravity)
 
-    def _policy_command(self, inp: TickInput, lift_leg: str | None, leg_target) -> Command:
-        """Policy tick: observation, ONNX, delta target; the lifted leg from ``leg_target``
-        (a :class:`deploy.lift_schedule.LegTarget`, or None)."""
+    def _policy_command(self, inp: TickInput, lift_leg: str | None, target_at) -> Command:
+        """Policy tick: observation, ONNX, delta target; the lifted leg from
+        ``target_at(s)``, its :class:`deploy.lift_schedule.LegTarget` (or None) ``s`` seconds
+        after this tick, at the tick and at each of its substeps."""
         m = self.meta
         q = np.asarray(inp.q, dtype=float)
+        leg_target = target_at(0.0)
         phase = leg_target.phase if leg_target is not None else ""
         lift_on = lift_leg is not None and phase not in ("", "done")
         signals = {
@@ -412,7 +431,35 @@ class Session:
         q_des = self.sup.limit(target, self._prev_target)
         self._prev_target = q_des
         self.phase = phase
-        return Command(q_des, dq, kp, kd, tau, f"policy:{phase or 'stand'}", obs, actions)
+        cmd = Command(q_des, dq, kp, kd, tau, f"policy:{phase or 'stand'}", obs, actions)
+        if lift_leg is not None:
+            cmd.substeps = self._substeps(cmd, lift_leg, target_at)
+        return cmd
+
+    def _substeps(self, cmd: Command, lift_leg: str, target_at) -> tuple[Command, ...]:
+        """The tick's later frames: ``cmd`` with the lifted leg's schedule at their times
+        (where it gives a target; a frame it does not, e.g. past the lowering, repeats the
+        previous one). Each is clamped and rate-limited from the frame before it."""
+        n = self.cfg.commands_per_tick
+        idx = sdk_indices(lift_leg)
+        subs = []
+        prev = Command(cmd.q, cmd.dq, cmd.kp, cmd.kd, cmd.tau, cmd.source)  # a bare frame
+        for i in range(1, n):
+            lt = target_at(i * self.dt / n)
+            if lt is None or lt.q_des is None:
+                subs.append(prev)
+                continue
+            q = prev.q.copy()
+            q[idx] = lt.q_des
+            dq, kp, kd, tau = prev.dq.copy(), prev.kp.copy(), prev.kd.copy(), prev.tau.copy()
+            dq[idx] = lt.dq_des
+            kp[idx], kd[idx] = lt.kp, lt.kd
+            tau[idx] = lt.tau if lt.tau is not None else 0.0
+            q = self.sup.limit(q, prev.q, fraction=1.0 / n)
+            prev = Command(q, dq, kp, kd, tau, cmd.source)
+            subs.append(prev)
+        self._prev_target = prev.q
+        return tuple(subs)
 
     def _lift_time(self) -> float:
         return (self.k - self._k_lift) * self.dt
@@ -422,7 +469,8 @@ class Session:
             return self._lower_now(inp)
         sched = self.meta.schedule
         t = self._lift_time()
-        cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp))
+        cmd = self._policy_command(inp, self.leg,
+                                   lambda s: self._schedule_target(self.leg, t + s, inp))
         if self.state is State.DAMP:
             return cmd
         if self.phase == "excite":
@@ -442,7 +490,8 @@ class Session:
         if self._abort:
             return self._lower_now(inp)
         t = self._lift_time()
-        cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp))
+        cmd = self._policy_command(inp, self.leg,
+                                   lambda s: self._schedule_target(self.leg, t + s, inp))
         if self.state is State.DAMP:
             return cmd
         if self.phase != "excite":
@@ -471,14 +520,15 @@ class Session:
         self._go(State.LOWER, f"abort: {self._abort}")
         return self._lower(inp, ())
 
-    def _abort_target(self):
+    def _abort_target(self, s: float = 0.0):
+        """The aborted leg's way back, ``s`` seconds after this tick."""
         from deploy.lift_schedule import LegTarget
 
         sched = self.meta.schedule
         if self._abort_to is None:
             return LegTarget("done", None, None, sched.kp, sched.kd)
         dur = 1.5 * sched.lower
-        x = min(1.0, self.t_state / dur)
+        x = min(1.0, (self.t_state + s) / dur)
         w = x**3 * (10 - 15 * x + 6 * x**2)
         dw = 30 * x**2 * (1 - x) ** 2 / dur
         q = self._abort_from + w * (self._abort_to - self._abort_from)
@@ -490,12 +540,13 @@ class Session:
     def _lower(self, inp: TickInput, combos) -> Command:
         sched = self.meta.schedule
         if self._abort:
-            cmd = self._policy_command(inp, self.leg, self._abort_target())
+            cmd = self._policy_command(inp, self.leg, self._abort_target)
             end = 1.5 * sched.lower if self._abort_to is not None else 0.0
             done = self.t_state >= end + self.cfg.lower_settle_s
         else:
             t = self._lift_time()
-            cmd = self._policy_command(inp, self.leg, self._schedule_target(self.leg, t, inp))
+            cmd = self._policy_command(inp, self.leg,
+                                       lambda s: self._schedule_target(self.leg, t + s, inp))
             done = t >= sched.total(self.leg) + self.cfg.lower_settle_s
         if self.state is State.DAMP:
             return cmd

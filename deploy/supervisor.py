@@ -124,13 +124,15 @@ class SafetySupervisor:
         bad = np.flatnonzero(~np.isfinite(a.reshape(-1)))
         return f"non-finite {name} (index {int(bad[0])}: {a.reshape(-1)[bad[0]]})"
 
-    def limit(self, q_des, prev) -> np.ndarray:
-        """``q_des`` clamped to the soft limits and to ``max_rate`` from ``prev`` (rad)."""
+    def limit(self, q_des, prev, fraction: float = 1.0) -> np.ndarray:
+        """``q_des`` clamped to the soft limits and to ``max_rate`` from ``prev`` (rad), sent
+        ``fraction`` of a tick after it."""
         q = np.clip(q_des, self.lower, self.upper)
         if np.any(q != q_des):
             self.clamped += 1
         if prev is not None:
-            lo, hi = prev - self.max_step, prev + self.max_step
+            step = self.max_step * fraction
+            lo, hi = prev - step, prev + step
             r = np.clip(q, lo, hi)
             if np.any(r != q):
                 self.rate_limited += 1

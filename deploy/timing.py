@@ -61,7 +61,8 @@ class DeadlineTicker:
 
 @dataclass
 class TimingSummary:
-    """Figures of a run: ticks, missed deadlines, period error and compute time (s)."""
+    """Figures of a run: ticks, missed deadlines, period error and compute time (s);
+    frames_skipped: a tick's later LowCmd_ frames not sent because the next one was due."""
 
     ticks: int
     missed: int
@@ -72,11 +73,12 @@ class TimingSummary:
     compute_p50: float
     compute_p99: float
     compute_max: float
+    frames_skipped: int = 0
 
     def lines(self) -> list[str]:
         return [
             (f"ticks {self.ticks}, missed deadlines {self.missed}, ticks started late "
-            f"(> 1 ms) {self.late}"),
+            f"(> 1 ms) {self.late}, frames skipped {self.frames_skipped}"),
             (f"period error  p50 {self.period_error_p50 * 1e3:7.3f} ms   "
             f"p99 {self.period_error_p99 * 1e3:7.3f} ms   max {self.period_error_max * 1e3:7.3f} ms"),
             (f"compute time  p50 {self.compute_p50 * 1e3:7.3f} ms   "
@@ -99,6 +101,7 @@ class TickStats:
         self.n = 0
         self.late = 0
         self.missed = 0
+        self.frames_skipped = 0
         self.max_err = 0.0
         self.max_cpu = 0.0
 
@@ -116,9 +119,11 @@ class TickStats:
         m = min(self.n, self.capacity)
         if m == 0:
             nan = float("nan")
-            return TimingSummary(0, self.missed, 0, nan, nan, nan, nan, nan, nan)
+            return TimingSummary(0, self.missed, 0, nan, nan, nan, nan, nan, nan,
+                                 self.frames_skipped)
         e, c = self._err[:m], self._cpu[:m]
         pe = np.percentile(e, [50, 99])
         pc = np.percentile(c, [50, 99])
         return TimingSummary(self.n, self.missed, self.late, float(pe[0]), float(pe[1]),
-                             self.max_err, float(pc[0]), float(pc[1]), self.max_cpu)
+                             self.max_err, float(pc[0]), float(pc[1]), self.max_cpu,
+                             self.frames_skipped)

@@ -16,10 +16,12 @@ The policy runs as on board (``deploy``'s TRIPOD / CALIBRATE states), on the sim
   target with the JSON's kp / kd;
 * after ``settle_s`` the lift command: :class:`deploy.lift_schedule.LiftSchedule` from the
   JSON (shift, lift, hold, excite, lower); while it gives targets the lifted leg's three motors
-  get its ``q_des`` / ``dq_des`` with its own kp / kd, evaluated at every physics step (as the
-  training environment does at each substep); ``q_start`` is latched at the first step of
-  ``lift``; when the schedule is done the policy's target of the leg restarts from the leg's
-  position and the lift command is cleared (as in training and deploy).
+  get its ``q_des`` / ``dq_des`` with its own kp / kd, evaluated at each of deploy's
+  ``commands_per_tick`` LowCmd_ frames and held in between, as the motors hold them (every
+  4 ms; the training environment moves them every 5 ms substep); ``q_start`` is latched at
+  the first step of ``lift``; when the schedule is done the policy's target of the leg
+  restarts from the leg's position and the lift command is cleared (as in training and
+  deploy).
 
 Recorded: the excitation phase only (what deploy's SOLVE calibrates from). Watched for
 :class:`sim.free_base_run.RunHealth`: hold and excitation (tilt, lifted-foot touchdowns,
@@ -35,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.joints import check_leg, model_indices, model_to_sdk, sdk_indices, sdk_to_model
-from deploy.lift_schedule import PHASES, blend_accelerations, blend_targets
+from deploy.lift_schedule import COMMANDS_PER_TICK, PHASES, blend_accelerations, blend_targets
 from deploy.observation import build_observation, projected_gravity
 from deploy.policy import PolicyMeta, PolicyRunner
 from policy_train.config import OBS_NOISE
@@ -123,6 +125,7 @@ def run_policy_a2i(
     effects=(),
     disturbance: Disturbance | None = None,
     progress=None,
+    commands_per_tick: int = COMMANDS_PER_TICK,
 ) -> tuple[MotionRun, RunHealth]:
     """The A2I calibration of ``leg`` by the tripod policy on the free-base simulated Go2.
 
@@ -134,7 +137,9 @@ def run_policy_a2i(
     step, s; record_every: physics steps per recorded sample (2 at 1 kHz = 500 Hz encoders).
     effects: :class:`sim.effects.Effect` objects of this run's simulator (fresh ones per run;
     e.g. latency, motor strength, masses, friction). disturbance: observation noise and pushes
-    (:class:`Disturbance`; None: neither).
+    (:class:`Disturbance`; None: neither). commands_per_tick: LowCmd_ frames per policy tick,
+    each carrying the lifted leg's schedule at its time (deploy's
+    :data:`deploy.lift_schedule.COMMANDS_PER_TICK`; must divide the tick's physics steps).
 
     Returns the :class:`MotionRun` of the excitation phase (sim-time stamps; motion name
     ``a2i_<leg>``) and the :class:`RunHealth` of hold + excitation (``fell`` covers the whole
@@ -153,6 +158,11 @@ def run_policy_a2i(
     if n_ctrl < 1 or abs(n_ctrl * timestep - pb.control_dt) > 1e-9:
         raise ValueError(f"control_dt {pb.control_dt} s is not a multiple of the "
                          f"physics step {timestep} s")
+    if isinstance(commands_per_tick, bool) or not isinstance(commands_per_tick, int) \
+            or commands_per_tick < 1 or n_ctrl % commands_per_tick:
+        raise ValueError(f"commands_per_tick must divide the {n_ctrl} physics steps of a "
+                         f"tick, got {commands_per_tick!r}")
+    n_frame = n_ctrl // commands_per_tick
     plan = sched.plan(leg)
     dur = sched.durations(leg)
     ends = np.cumsum(dur)
@@ -227,7 +237,9 @@ def run_policy_a2i(
             dq_cmd = np.zeros(12)
             kp_c, kd_c = kp_m.copy(), kd_m.copy()
         if sched_phase is not None and 1 <= phase <= 4:
-            j = k - k_latch
+            # the schedule at the time of this step's frame, held until the next frame (a latch
+            # mid-frame starts the lift's first frame at the latch)
+            j = max(k - k % n_frame - k_latch, 0)
             q_cmd = q_cmd.copy()
             dq_cmd = dq_cmd.copy()
             q_cmd[idx_m] = sched_q[j]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from calib.joints import LIE_POSE_LEG, full_pose, sdk_indices
-from deploy.lift_schedule import LiftSchedule
+from deploy.lift_schedule import COMMANDS_PER_TICK, LiftSchedule
 from deploy.policy import PolicyMeta, PolicyRunner
 from deploy.session import Session, SessionConfig, State, TickInput
 from deploy.supervisor import SafetySupervisor, SupervisorConfig
@@ -109,6 +109,48 @@ def test_lifted_leg_follows_schedule_with_its_gains(meta_paths):
     np.testing.assert_allclose(cmd.kp[others], rig.meta.kp[others])
     np.testing.assert_allclose(cmd.q[idx], sched.plan("RR").q0, atol=0.05)
     assert cmd.source == "policy:excite"
+
+
+def test_lifted_leg_moves_between_ticks_in_the_substep_frames(meta_paths):
+    """Each tick carries the rest of its LowCmd_ frames: the lifted leg's schedule at
+    t + i dt / n (position, velocity, gains), every other motor as the tick's frame."""
+    rig = Rig(meta_paths[0], legs=("FL",))
+    rig.run_until(State.CALIBRATE)
+    for _ in range(5):
+        rig.tick()
+    t = rig.s._lift_time()
+    cmd = rig.tick()
+    n = CFG.commands_per_tick
+    assert n == COMMANDS_PER_TICK == 5 and len(cmd.substeps) == n - 1
+    idx = sdk_indices("FL")
+    others = np.setdiff1d(np.arange(12), idx)
+    sched = rig.meta.schedule
+    q_start = rig.s._q_start
+    frames = [cmd, *cmd.substeps]
+    for i, f in enumerate(frames):
+        lt = sched.targets("FL", t + i * 0.02 / n, q_start)
+        assert lt.phase == "excite"
+        np.testing.assert_allclose(f.q[idx], lt.q_des, atol=1e-12)
+        np.testing.assert_allclose(f.dq[idx], lt.dq_des, atol=1e-12)
+        assert f.kp[idx].tolist() == [sched.kp] * 3 and f.kd[idx].tolist() == [sched.kd] * 3
+        np.testing.assert_array_equal(f.q[others], cmd.q[others])
+        np.testing.assert_array_equal(f.kp[others], cmd.kp[others])
+    # the target moves within the tick (the plan is not at rest mid-excitation)
+    assert np.max(np.abs(frames[-1].q[idx] - frames[0].q[idx])) > 1e-4
+    # the next tick's rate limit starts from the last frame sent
+    np.testing.assert_array_equal(rig.s._prev_target, frames[-1].q)
+
+
+def test_frames_without_a_lifted_leg_are_repeats(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL",))
+    rig.run_until(State.STAND)
+    assert rig.tick().substeps == ()  # the runtime sends the tick's frame n times
+
+
+def test_commands_per_tick_must_be_a_positive_integer():
+    for bad in (0, -1, 2.5, True):
+        with pytest.raises(ValueError, match="commands_per_tick"):
+            SessionConfig(commands_per_tick=bad)
 
 
 def test_hand_back_restarts_the_policy_target_from_the_leg(meta_paths):

@@ -1,5 +1,5 @@
 """Hardware-in-the-loop: the deploy program against the lockstep mock robot over real Zenoh
-loopback and real pty serial ports (deterministic: the mock advances one 20 ms quantum per
+loopback and real pty serial ports (deterministic: the mock advances one 4 ms quantum per
 LowCmd_, and the loop ticks on the LowState of the expected tick).
 
 Two robots: a hung-up Go2 (``base: fixed``) driven by the hold policy (the stand-in network of
@@ -22,7 +22,7 @@ from calib.metrics import geodesic_error_deg
 from calib.result import CalibrationResult
 from deploy.cli import ALL_LEGS_ORDER
 from deploy.hold_policy import write_hold_policy
-from deploy.lift_schedule import LiftSchedule
+from deploy.lift_schedule import COMMANDS_PER_TICK, LiftSchedule
 from deploy.policy import PolicyMeta, policies_for_legs
 from deploy.runtime import DeployConfig, DeployError, DeployRunner, ImuPort
 from deploy.session import SessionConfig, State
@@ -95,10 +95,12 @@ def test_hung_robot_all_legs_recover_mounting_and_every_lowstate_recorded(polici
 
     snap = read_mcap(result.mcap_path)
     ticks = np.unique(snap.lowstate["tick"])
-    # (the last command's quantum is published after the loop has stopped reading: 10 states)
+    # (the last tick's five quanta are published after the loop has stopped reading: 10 states)
     assert len(ticks) >= published - robot.lowstates_repeated - 10
     assert np.all(np.diff(ticks) == 2)  # 2 ms apart, none missing
-    assert len(snap.imu["FL"]) > 1000 and len(snap.lowcmd) == result.ticks
+    # every LowCmd_ frame recorded: five per tick, and the lockstep quantum check's one
+    assert len(snap.imu["FL"]) > 1000
+    assert len(snap.lowcmd) == result.ticks * COMMANDS_PER_TICK + 1
     events = [text for _, _, text in snap.events_text()]
     assert any("CALIBRATE -> LOWER" in e for e in events)
 
@@ -245,6 +247,17 @@ def test_refuses_to_start_while_another_lowcmd_publisher_is_present(policies, tm
             deploy(robot, policies["hold"], ["FL"], tmp_path)
     finally:
         other.close()
+        robot.stop()
+
+
+def test_a_lockstep_robot_on_another_quantum_is_refused(policies, tmp_path):
+    """A lockstep mock that advances 20 ms per LowCmd_ would play five times too fast for a
+    loop that sends five frames per 20 ms tick: refused at start with a one-line reason."""
+    robot = start_mock(seed=9, lockstep_quantum_s=0.02)
+    try:
+        with pytest.raises(DeployError, match="advanced 20 ms on one LowCmd_.*must advance 4 ms"):
+            deploy(robot, policies["hold"], ["FL"], tmp_path)
+    finally:
         robot.stop()
 
 

@@ -96,6 +96,8 @@ def lockstep_mock():
 
     def make(**kw):
         ep = free_endpoint()
+        # LockstepClient is a plain 50 Hz controller, one rt/lowcmd per 20 ms quantum
+        kw.setdefault("lockstep_quantum_s", 0.02)
         cfg = MockConfig(listen=[ep], clock="lockstep", **kw)
         r = MockRobot(cfg).start()
         robots.append(r)
@@ -136,7 +138,7 @@ def test_stand_up_over_zenoh_and_lockstep_is_deterministic(lockstep_mock):
     # The same commands in-process give byte-identical lowstates (determinism, and Zenoh
     # carries the bytes unchanged).
     replay: dict[int, bytes] = {}
-    cfg = MockConfig(listen=[], clock="lockstep", foot_imus=NO_IMUS)
+    cfg = MockConfig(listen=[], clock="lockstep", foot_imus=NO_IMUS, lockstep_quantum_s=0.02)
     with MockRobot(cfg, transport=False, on_lowstate=lambda d, t: replay.setdefault(t, d)) as r2:
         r2.advance(0.0)
         for i in range(n):
@@ -309,7 +311,7 @@ def test_calibration_recovers_the_mock_truth():
     configured rotation and time offset."""
     r_true = rotation_from_rpy_deg(25.0, -40.0, 110.0)
     cfg = MockConfig(listen=[], clock="lockstep", base="fixed", initial_pose="standing",
-                     seed=3, foot_imus={"all": {"enabled": False},
+                     seed=3, lockstep_quantum_s=0.02, foot_imus={"all": {"enabled": False},
                                         "FL": {"enabled": True, "rate_hz": 400,
                                                "rotation_matrix": r_true.tolist(),
                                                "time_offset_s": -0.0437}})
@@ -361,7 +363,7 @@ def test_calibration_recovers_the_mock_truth():
 def _run_inprocess(seed: int, n: int = 20) -> list[bytes]:
     out: list[bytes] = []
     cfg = MockConfig(listen=[], clock="lockstep", seed=seed, encoder_q_noise_std=1e-3,
-                     body_gyro_noise_density=1e-3, foot_imus=NO_IMUS)
+                     body_gyro_noise_density=1e-3, foot_imus=NO_IMUS, lockstep_quantum_s=0.02)
     with MockRobot(cfg, transport=False, on_lowstate=lambda d, t: out.append(d)) as r:
         r.advance(0.0)
         for i in range(n):

@@ -13,7 +13,7 @@ import pytest
 pytest.importorskip("mujoco")
 pytest.importorskip("onnxruntime")
 
-from calib.joints import LEGS
+from calib.joints import LEGS, model_indices
 from calib.kinematics import LegKinematics
 from calib.motions import walk_motion, wave_motion
 from cli.calib import main
@@ -199,3 +199,26 @@ def test_feedforward_schedule_tracks_closer_on_the_floor(policy_run):
     run_ff, health = run_policy_a2i(ff, "FL", settle_s=SETTLE, periods=1, after_s=0.0)
     assert not health.fell
     assert np.all(run_ff.tracking_rmse[:3] < 0.5 * run.tracking_rmse[:3])
+
+
+def test_the_lifted_leg_moves_on_deploys_frames_not_once_per_tick():
+    """run_policy_a2i plays deploy's five LowCmd_ frames per tick: with one frame per tick (the
+    target held 20 ms) the kp-80 lifted leg of v17 lags its plan in a staircase that shakes
+    the tripod (docs/deploy.md)."""
+    v17 = POLICY.with_name("tripod_go2_v17.onnx")
+    if not v17.is_file():
+        pytest.skip("no v17")
+    pb = load_policy(v17)
+    idx = model_indices("FL")
+    out = {}
+    for n in (1, 5):
+        run, health = run_policy_a2i(pb, "FL", settle_s=SETTLE, periods=1, after_s=0.0,
+                                     commands_per_tick=n)
+        assert not health.fell and not health.lifted_foot_touched
+        track = float(np.sqrt(np.mean(run.tracking_rmse[idx] ** 2)))
+        rate = float(np.sqrt(np.mean(np.sum(run.base_gyro ** 2, axis=1))))
+        out[n] = track, rate
+    assert out[1][0] > 2 * out[5][0], out
+    assert out[1][1] > 1.2 * out[5][1], out
+    with pytest.raises(ValueError, match="commands_per_tick"):
+        run_policy_a2i(pb, "FL", commands_per_tick=3)  # 20 physics steps do not split in 3

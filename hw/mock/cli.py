@@ -32,7 +32,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, help="seed of every random choice (mountings, offsets, "
                    "noise)")
     p.add_argument("--clock", choices=CLOCKS, help="realtime (default) or lockstep "
-                   "(one 20 ms quantum per rt/lowcmd)")
+                   "(one 4 ms quantum per rt/lowcmd, as a2i-deploy sends them)")
     p.add_argument("--truth", metavar="PATH", help="where to write the ground-truth JSON "
                    "(default: a2i-mock-truth-<pid>.json in the temp folder)")
     p.add_argument("--progress", type=float, default=5.0, metavar="S",

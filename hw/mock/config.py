@@ -111,7 +111,7 @@ class MockConfig:
     physics_hz: float = 1000.0
     lowstate_hz: float = 500.0
     wireless_hz: float = 50.0
-    lockstep_quantum_s: float = 0.02
+    lockstep_quantum_s: float = 0.004
     lockstep_idle_repeat_s: float = 0.1
     tick_epoch_s: float = 1.0
     base: str = "free"
