@@ -218,26 +218,36 @@ class LiftSchedule:
         gravity_b: (3,) unit direction of gravity in the base frame (the projected gravity)
         for the feed-forward torque; None: level.
         """
-        if not np.isfinite(t) or t < 0:
-            raise ValueError(f"t must be a finite time >= 0 s, got {t}")
+        return self.targets_at(leg, [t], q_start, gravity_b)[0]
+
+    def targets_at(self, leg: str, ts, q_start, gravity_b=None) -> list[LegTarget]:
+        """:meth:`targets` at each of the times ``ts`` (s after the lift command) in one
+        vectorised evaluation (a tick's LowCmd_ frames: the feed-forward's dynamics cost
+        about as much for one time as for five)."""
+        t = np.asarray(ts, dtype=float).reshape(-1)
+        if t.size == 0 or not np.all(np.isfinite(t)) or np.any(t < 0):
+            raise ValueError(f"times must be finite and >= 0 s, got {ts}")
         qs = np.asarray(q_start, dtype=float)
         if qs.shape != (3,) or not np.all(np.isfinite(qs)):
             raise ValueError("q_start must be 3 finite joint angles (rad)")
         plan = self.plan(leg)
         d = self.durations(leg)
-        te = float(t) - d[:3].sum()
-        q_exc = plan.positions([te])
-        dq_exc = plan.velocities([te])
-        q, dq, ph = blend_targets(np.array([float(t)]), d, qs[None], plan.q0[None], q_exc, dq_exc)
-        name = PHASES[int(ph[0])]
-        if name in ("shift", "done"):
-            return LegTarget(name, None, None, self.kp, self.kd)
+        te = t - d[:3].sum()
+        q, dq, ph = blend_targets(t, d, qs[None], plan.q0[None], plan.positions(te),
+                                  plan.velocities(te))
         tau = None
         if self.feedforward:
-            ddq = blend_accelerations(np.array([float(t)]), d, qs[None], plan.q0[None],
-                                      plan.accelerations([te]))
-            tau = self.feedforward_torque(leg, q, dq, ddq, gravity_b)[0]
-        return LegTarget(name, q[0], dq[0], self.kp, self.kd, tau)
+            ddq = blend_accelerations(t, d, qs[None], plan.q0[None], plan.accelerations(te))
+            tau = self.feedforward_torque(leg, q, dq, ddq, gravity_b)
+        out = []
+        for i, p in enumerate(ph):
+            name = PHASES[int(p)]
+            if name in ("shift", "done"):
+                out.append(LegTarget(name, None, None, self.kp, self.kd))
+            else:
+                out.append(LegTarget(name, q[i], dq[i], self.kp, self.kd,
+                                     None if tau is None else tau[i]))
+        return out
 
     @staticmethod
     def feedforward_torque(leg: str, q, dq, ddq, gravity_b=None) -> np.ndarray:

@@ -90,7 +90,7 @@ class SessionConfig:
     damp_kd: float = DAMP_KD
     # LowCmd_ frames per tick. The motors hold each frame's target, so a lifted leg whose
     # target moved once per 20 ms tick lagged its plan in a 20 ms staircase: at its kp 80 that
-    # shook the tripod (nominal base rate 0.11-0.15 rad/s against 0.07-0.09 with the target
+    # shook the tripod (nominal base rate 0.11-0.15 rad/s against 0.08-0.10 with the target
     # moved every 4 ms; docs/deploy.md). Training moves it every 5 ms physics step.
     commands_per_tick: int = COMMANDS_PER_TICK
 
@@ -368,25 +368,32 @@ class Session:
         self._k_lift = self.k + 1  # the lift command is given at TRIPOD's first tick
         self._go(State.TRIPOD, cause)
 
-    def _schedule_target(self, lift_leg: str, t_lift: float, inp: TickInput):
-        """The lift schedule's target of ``lift_leg`` at ``t_lift`` (latching q_start); its
-        feed-forward torque, if any, for the body's measured tilt."""
+    def _frame_offsets(self) -> np.ndarray:
+        """s after the tick of each of its LowCmd_ frames."""
+        n = self.cfg.commands_per_tick
+        return np.arange(n) * (self.dt / n)
+
+    def _schedule_targets(self, lift_leg: str, t_lift: float, inp: TickInput) -> list:
+        """The lift schedule's targets of ``lift_leg`` at this tick's frames, ``t_lift`` s
+        after the lift command and on (latching q_start at the first tick whose frames reach
+        lift); their feed-forward torques, if any, for the body's measured tilt."""
         sched = self.meta.schedule
         q = np.asarray(inp.q, dtype=float)
         idx = sdk_indices(lift_leg)
-        if self._q_start is None and sched.phase(lift_leg, t_lift) != "shift":
+        ts = t_lift + self._frame_offsets()
+        if self._q_start is None and sched.phase(lift_leg, ts[-1]) != "shift":
             self._q_start = q[idx].copy()  # latched at the first tick of lift
         q_start = self._q_start if self._q_start is not None else q[idx]
         gravity = projected_gravity(inp.quat) if inp.quat is not None else None
-        return sched.targets(lift_leg, t_lift, q_start, gravity)
+        return sched.targets_at(lift_leg, ts, q_start, gravity)
 
-    def _policy_command(self, inp: TickInput, lift_leg: str | None, target_at) -> Command:
+    def _policy_command(self, inp: TickInput, lift_leg: str | None, frame_targets) -> Command:
         """Policy tick: observation, ONNX, delta target; the lifted leg from
-        ``target_at(s)``, its :class:`deploy.lift_schedule.LegTarget` (or None) ``s`` seconds
-        after this tick, at the tick and at each of its substeps."""
+        ``frame_targets``, its :class:`deploy.lift_schedule.LegTarget` (or None) at each of
+        the tick's frames (:meth:`_frame_offsets`)."""
         m = self.meta
         q = np.asarray(inp.q, dtype=float)
-        leg_target = target_at(0.0)
+        leg_target = frame_targets[0]
         phase = leg_target.phase if leg_target is not None else ""
         lift_on = lift_leg is not None and phase not in ("", "done")
         signals = {
@@ -433,19 +440,18 @@ class Session:
         self.phase = phase
         cmd = Command(q_des, dq, kp, kd, tau, f"policy:{phase or 'stand'}", obs, actions)
         if lift_leg is not None:
-            cmd.substeps = self._substeps(cmd, lift_leg, target_at)
+            cmd.substeps = self._substeps(cmd, lift_leg, frame_targets[1:])
         return cmd
 
-    def _substeps(self, cmd: Command, lift_leg: str, target_at) -> tuple[Command, ...]:
-        """The tick's later frames: ``cmd`` with the lifted leg's schedule at their times
-        (where it gives a target; a frame it does not, e.g. past the lowering, repeats the
+    def _substeps(self, cmd: Command, lift_leg: str, later) -> tuple[Command, ...]:
+        """The tick's later frames: ``cmd`` with the lifted leg's targets ``later`` (where
+        the schedule gives one; a frame it does not, e.g. past the lowering, repeats the
         previous one). Each is clamped and rate-limited from the frame before it."""
         n = self.cfg.commands_per_tick
         idx = sdk_indices(lift_leg)
         subs = []
         prev = Command(cmd.q, cmd.dq, cmd.kp, cmd.kd, cmd.tau, cmd.source)  # a bare frame
-        for i in range(1, n):
-            lt = target_at(i * self.dt / n)
+        for lt in later:
             if lt is None or lt.q_des is None:
                 subs.append(prev)
                 continue
@@ -469,8 +475,7 @@ class Session:
             return self._lower_now(inp)
         sched = self.meta.schedule
         t = self._lift_time()
-        cmd = self._policy_command(inp, self.leg,
-                                   lambda s: self._schedule_target(self.leg, t + s, inp))
+        cmd = self._policy_command(inp, self.leg, self._schedule_targets(self.leg, t, inp))
         if self.state is State.DAMP:
             return cmd
         if self.phase == "excite":
@@ -490,8 +495,7 @@ class Session:
         if self._abort:
             return self._lower_now(inp)
         t = self._lift_time()
-        cmd = self._policy_command(inp, self.leg,
-                                   lambda s: self._schedule_target(self.leg, t + s, inp))
+        cmd = self._policy_command(inp, self.leg, self._schedule_targets(self.leg, t, inp))
         if self.state is State.DAMP:
             return cmd
         if self.phase != "excite":
@@ -540,13 +544,13 @@ class Session:
     def _lower(self, inp: TickInput, combos) -> Command:
         sched = self.meta.schedule
         if self._abort:
-            cmd = self._policy_command(inp, self.leg, self._abort_target)
+            cmd = self._policy_command(inp, self.leg,
+                                       [self._abort_target(s) for s in self._frame_offsets()])
             end = 1.5 * sched.lower if self._abort_to is not None else 0.0
             done = self.t_state >= end + self.cfg.lower_settle_s
         else:
             t = self._lift_time()
-            cmd = self._policy_command(inp, self.leg,
-                                       lambda s: self._schedule_target(self.leg, t + s, inp))
+            cmd = self._policy_command(inp, self.leg, self._schedule_targets(self.leg, t, inp))
             done = t >= sched.total(self.leg) + self.cfg.lower_settle_s
         if self.state is State.DAMP:
             return cmd

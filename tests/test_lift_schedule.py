@@ -90,3 +90,26 @@ def test_batched_core_matches(sched):
         else:
             np.testing.assert_allclose(q[i], tg.q_des)
             np.testing.assert_allclose(dq[i], tg.dq_des)
+
+
+def test_targets_at_several_times_equal_the_single_calls():
+    """One vectorised evaluation for a tick's frames, across phase boundaries (shift -> lift,
+    lower -> done), with the feed-forward torque for a tilted body."""
+    ff = LiftSchedule(t_r=0.3, periods=1, n_basis=6, feedforward=True)
+    ends = np.cumsum(ff.durations("RR"))
+    g = np.array([0.1, -0.05, -0.99])
+    for t0 in (ends[0] - 0.01, ends[2] + 0.3, ends[-1] - 0.01):
+        ts = t0 + np.arange(5) * 0.004
+        many = ff.targets_at("RR", ts, Q_START, g)
+        assert len({x.phase for x in many}) == (1 if t0 == ends[2] + 0.3 else 2)
+        for t, x in zip(ts, many, strict=True):
+            y = ff.targets("RR", t, Q_START, g)
+            assert x.phase == y.phase
+            if y.q_des is None:
+                assert x.q_des is None and x.tau is None
+            else:
+                np.testing.assert_allclose(x.q_des, y.q_des, atol=1e-12)
+                np.testing.assert_allclose(x.dq_des, y.dq_des, atol=1e-12)
+                np.testing.assert_allclose(x.tau, y.tau, atol=1e-9)
+    with pytest.raises(ValueError, match="times"):
+        ff.targets_at("RR", [0.1, -0.004], Q_START)
