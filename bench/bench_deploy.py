@@ -107,6 +107,8 @@ def main() -> int:
     print(f"| wall time | {wall:.1f} s |")
     print(f"| ticks | {s.ticks} (expected {n_ticks}) |")
     print(f"| missed deadlines | {s.missed} |")
+    print(f"| LowCmd_ frames skipped (a successor already due) | {s.frames_skipped} of "
+          f"{s.ticks * (runner.n_cmd - 1)} |")
     print(f"| ticks started > 1 ms late | {s.late} ({100 * s.late / max(1, s.ticks):.2f} %) |")
     print(f"| period error p50 / p99 / max | {s.period_error_p50 * 1e3:.3f} / "
           f"{s.period_error_p99 * 1e3:.3f} / {s.period_error_max * 1e3:.3f} ms |")
