@@ -231,6 +231,9 @@ class DeployRunner:
         self._cmd = LowCmdBuffer()
         self._joy = Joystick()
         self._stop = threading.Event()
+        # the realtime schedule's clock (ns) and sleep (s): the ticker's and the frames'
+        self._clock: Callable[[], int] = time.monotonic_ns
+        self._sleep: Callable[[float], None] = time.sleep
         self.latest = None  # newest LowStateView
         self.latest_ns = 0
         self.last_tick_ms: int | None = None
@@ -469,12 +472,12 @@ class DeployRunner:
         for i, f in enumerate(frames, start=1):
             if not lockstep:
                 due = deadline_ns + i * sub_ns
-                now = time.monotonic_ns()
+                now = self._clock()
                 if i < n - 1 and now >= due + sub_ns:
                     self.stats.frames_skipped += 1
                     continue
                 if now < due:
-                    time.sleep((due - now) * 1e-9)
+                    self._sleep((due - now) * 1e-9)
             self._publish(f)
 
     def _progress(self) -> None:
@@ -540,7 +543,7 @@ class DeployRunner:
     def _loop(self) -> None:
         c = self.cfg
         lockstep = c.clock == "lockstep"
-        ticker = None if lockstep else DeadlineTicker(self.dt)
+        ticker = None if lockstep else DeadlineTicker(self.dt, self._clock, self._sleep)
         sess = self.session
         final_left = c.final_ticks
         expected: int | None = None

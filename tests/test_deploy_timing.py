@@ -75,43 +75,57 @@ def _frames(n):
     return [Command(np.full(12, float(i)), z, z, z, z, f"frame {i}") for i in range(n)]
 
 
+def _frame_stub(clk, sent):
+    """What DeployRunner._publish_rest uses of the runner, on a fake clock."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(n_cmd=5, dt=0.02, stats=TickStats(), _clock=clk.now,
+                           _sleep=clk.sleep, _publish=lambda c: sent.append((clk.now(), c)))
+
+
 def test_a_ticks_later_frames_go_out_on_their_sub_deadlines():
     """The realtime loop sends a tick's substep frames dt / n apart, on absolute sub-deadlines
     (never early), in order; a tick with no substeps repeats its frame."""
-    import time
-    from types import SimpleNamespace
-
     from deploy.runtime import DeployRunner
 
-    sent = []
-    stub = SimpleNamespace(n_cmd=5, dt=0.02, stats=TickStats(),
-                           _publish=lambda c: sent.append((time.monotonic_ns(), c)))
+    clk, sent = FakeClock(), []
+    stub = _frame_stub(clk, sent)
     first, *rest = _frames(5)
     first.substeps = tuple(rest)
-    t0 = time.monotonic_ns()
+    t0 = clk.now()
+    clk.t += 2_500_000  # the tick's compute
     DeployRunner._publish_rest(stub, first, t0, lockstep=False)
     assert [c for _, c in sent] == rest
     for i, (t, _) in enumerate(sent, start=1):
-        assert t >= t0 + i * 4_000_000
-    assert sent[-1][0] - t0 < 30_000_000 and stub.stats.frames_skipped == 0
+        assert t0 + i * 4_000_000 <= t <= t0 + i * 4_000_000 + clk.overshoot
+    assert stub.stats.frames_skipped == 0
 
     sent.clear()
-    DeployRunner._publish_rest(stub, _frames(1)[0], time.monotonic_ns(), lockstep=True)
-    assert len(sent) == 4 and all(c.source == "frame 0" for _, c in sent)  # repeats, at once
+    t1 = clk.now()
+    DeployRunner._publish_rest(stub, _frames(1)[0], t1, lockstep=True)
+    assert [c.source for _, c in sent] == ["frame 0"] * 4  # repeats, at once
+    assert clk.now() == t1
 
 
 def test_a_late_tick_skips_the_frames_already_overtaken():
-    import time
-    from types import SimpleNamespace
-
     from deploy.runtime import DeployRunner
 
-    sent = []
-    stub = SimpleNamespace(n_cmd=5, dt=0.02, stats=TickStats(),
-                           _publish=lambda c: sent.append(c.source))
+    clk, sent = FakeClock(), []
+    stub = _frame_stub(clk, sent)
     first, *rest = _frames(5)
     first.substeps = tuple(rest)
-    # the tick's compute ran 10 ms: frame 1 (due +4 ms) is overtaken by frame 2 (due +8 ms)
-    DeployRunner._publish_rest(stub, first, time.monotonic_ns() - 10_000_000, lockstep=False)
-    assert sent == ["frame 2", "frame 3", "frame 4"] and stub.stats.frames_skipped == 1
+    # the tick's compute ran 10 ms: frame 1 (due +4 ms) is overtaken by frame 2 (due +8 ms),
+    # which goes out at once; the last frame is never skipped
+    t0 = clk.now()
+    clk.t += 10_000_000
+    DeployRunner._publish_rest(stub, first, t0, lockstep=False)
+    assert [c.source for _, c in sent] == ["frame 2", "frame 3", "frame 4"]
+    assert sent[0][0] == t0 + 10_000_000
+    assert stub.stats.frames_skipped == 1
     assert "frames skipped 1" in stub.stats.summary().lines()[0]
+
+    sent.clear()
+    t0 = clk.now()
+    clk.t += 30_000_000  # a whole tick late: frames 1-3 overtaken, frame 4 still sent
+    DeployRunner._publish_rest(stub, first, t0, lockstep=False)
+    assert [c.source for _, c in sent] == ["frame 4"] and stub.stats.frames_skipped == 4

@@ -16,8 +16,8 @@ velocity target.
 
 Clocks. ``realtime``: one thread steps the physics on absolute 1 ms deadlines of the
 monotonic clock and releases every output at its due wall time. ``lockstep``: the simulation
-advances one quantum (4 ms: a2i-deploy's five frames per 20 ms tick) per ``rt/lowcmd`` received, as fast as the CPU allows, and is
-deterministic.
+advances one quantum (4 ms: a2i-deploy's five frames per 20 ms tick) per ``rt/lowcmd``
+received, as fast as the CPU allows, and is deterministic.
 
 Time offsets. ``t_d = t_I - t_E``. Lockstep: the IMU device clock is the simulation clock
 (+ ``tick_epoch_s``, like the lowstate tick): a frame describing sim time tau carries
