@@ -12,7 +12,9 @@ acceleration are left out; only the direction of gravity in the base frame is an
 (the measured projected gravity, or level). Recursive Newton-Euler over the leg's three
 links, vectorised over samples, with the link inertias of the URDF (the foot sphere merged
 into the calf, as pinocchio merges fixed links) plus the motors' reflected rotor inertia on
-each joint. Pure numpy at run time; pinocchio only reads the URDF once.
+each joint. Pure numpy at run time; pinocchio only reads the URDF once, and a machine without
+the URDF or pinocchio (a lent training machine) loads the same numbers from a pack file
+(:meth:`LegDynamics.save_pack`, written by ``a2i-train pack``).
 """
 
 from __future__ import annotations
@@ -27,6 +29,9 @@ from calib.kinematics import LegKinematics
 from calib.robot import go2_urdf_path
 
 __all__ = ["GRAVITY", "ROTOR_INERTIA", "LegDynamics", "TorqueTable"]
+
+_PACKED: dict[str, LegDynamics] = {}  # legs loaded by LegDynamics.load_pack, before the URDF's
+_ARRAYS = ("placement_rotation", "placement_translation", "axes", "mass", "com", "inertia")
 
 GRAVITY = 9.81  # m/s^2
 ROTOR_INERTIA = 0.01
@@ -71,33 +76,72 @@ class LegDynamics:
     in the leg's own URDF signs (rad, rad/s, rad/s^2) and returns joint torques, N m.
     """
 
-    def __init__(self, kin: LegKinematics, mass: np.ndarray, com: np.ndarray,
-                 inertia: np.ndarray, rotor_inertia: float = ROTOR_INERTIA) -> None:
-        """kin: the leg's chain (joint placements and axes). mass (3,) kg; com (3, 3) centre of
-        mass of each link in its joint frame, m; inertia (3, 3, 3) about the centre of mass in
-        the joint frame's axes, kg m^2; rotor_inertia kg m^2 on every joint."""
-        self.leg = kin.leg
-        self._r0 = kin.placement_rotation
-        self._p0 = kin.placement_translation
-        self._axes = kin.axes
+    def __init__(self, leg: str, placement_rotation: np.ndarray,
+                 placement_translation: np.ndarray, axes: np.ndarray, mass: np.ndarray,
+                 com: np.ndarray, inertia: np.ndarray,
+                 rotor_inertia: float = ROTOR_INERTIA) -> None:
+        """The leg's chain as :class:`calib.kinematics.LegKinematics` has it: placement_rotation
+        (3, 3, 3) and placement_translation (3, 3), m, of each joint's frame in its parent's,
+        axes (3, 3) unit, in the joint's frame. mass (3,) kg; com (3, 3) centre of mass of each
+        link in its joint frame, m; inertia (3, 3, 3) about the centre of mass in the joint
+        frame's axes, kg m^2; rotor_inertia kg m^2 on every joint."""
+        self.leg = check_leg(leg)
+        self._r0 = np.asarray(placement_rotation, dtype=float).reshape(3, 3, 3)
+        self._p0 = np.asarray(placement_translation, dtype=float).reshape(3, 3)
+        self._axes = np.asarray(axes, dtype=float).reshape(3, 3)
         self.mass = np.asarray(mass, dtype=float).reshape(3)
         self.com = np.asarray(com, dtype=float).reshape(3, 3)
         self.inertia = np.asarray(inertia, dtype=float).reshape(3, 3, 3)
         self.rotor_inertia = float(rotor_inertia)
 
     @classmethod
-    @cache
     def of_leg(cls, leg: str) -> LegDynamics:
-        """The Go2 leg of example-robot-data's URDF (FL, FR, RL or RR)."""
+        """The Go2 leg (FL, FR, RL or RR): from a loaded pack (:meth:`load_pack`), else from
+        example-robot-data's URDF."""
+        leg = check_leg(leg)
+        return _PACKED.get(leg) or cls._from_urdf(leg)
+
+    @classmethod
+    @cache
+    def _from_urdf(cls, leg: str) -> LegDynamics:
         import pinocchio as pin  # deferred, as in calib.kinematics
 
-        leg = check_leg(leg)
         kin = LegKinematics.from_urdf(None, leg)
         model = pin.buildModelFromUrdf(str(go2_urdf_path()))
         ids = [model.getJointId(n) for n in kin.joint_names]
         ins = [model.inertias[j] for j in ids]
-        return cls(kin, np.array([i.mass for i in ins]), np.array([i.lever for i in ins]),
+        return cls(leg, kin.placement_rotation, kin.placement_translation, kin.axes,
+                   np.array([i.mass for i in ins]), np.array([i.lever for i in ins]),
                    np.array([i.inertia for i in ins]))
+
+    @staticmethod
+    def save_pack(path, legs=("FL", "FR", "RL", "RR")) -> None:
+        """Write the legs' parameters (``.npz``) for a machine without the URDF."""
+        arrays = {}
+        for leg in legs:
+            d = LegDynamics.of_leg(leg)
+            values = (d._r0, d._p0, d._axes, d.mass, d.com, d.inertia)
+            arrays.update({f"{leg}.{k}": v for k, v in zip(_ARRAYS, values)})
+            arrays[f"{leg}.rotor_inertia"] = np.array(d.rotor_inertia)
+        with open(path, "wb") as f:  # a file object: np.savez would append ".npz" to a name
+            np.savez(f, **arrays)
+
+    @staticmethod
+    def load_pack(path) -> tuple[str, ...]:
+        """Use the legs of a :meth:`save_pack` file from now on (in this process); returns
+        them. ValueError if the file is not such a pack."""
+        try:
+            with np.load(path) as z:
+                legs = sorted({k.split(".")[0] for k in z.files})
+                loaded = {leg: LegDynamics(leg, *(z[f"{leg}.{k}"] for k in _ARRAYS),
+                                           rotor_inertia=float(z[f"{leg}.rotor_inertia"]))
+                          for leg in legs}
+        except (OSError, KeyError, ValueError) as e:
+            raise ValueError(f"{path}: not a leg-dynamics pack ({e})") from None
+        if not loaded:
+            raise ValueError(f"{path}: not a leg-dynamics pack (no legs)")
+        _PACKED.update(loaded)
+        return tuple(loaded)
 
     def table(self, q, dq, ddq, limit=None) -> TorqueTable:
         """:class:`TorqueTable` of the motion (q, dq, ddq), each (N, 3) (as :meth:`torques`)."""

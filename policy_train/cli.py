@@ -70,6 +70,7 @@ def _tripod(a) -> int:
     overrides = {"num_envs": (cfg.env, "num_envs"), "plans_per_leg": (cfg.env, "plans_per_leg"),
                  "save_interval": (cfg.ppo, "save_interval"),
                  "model_file": (cfg.env, "model_file"), "plan_pool": (cfg.env, "plan_pool_file"),
+                 "leg_dynamics": (cfg.env, "leg_dynamics_file"),
                  "steps_per_env": (cfg.ppo, "num_steps_per_env"),
                  "entropy_coef": (cfg.ppo, "entropy_coef"),
                  "lift_leg_weights": (cfg.env, "lift_leg_weights"),
@@ -81,6 +82,13 @@ def _tripod(a) -> int:
     if a.mirror_augmentation is not None:
         cfg.ppo.mirror_augmentation = a.mirror_augmentation
     cfg.env.dr = cfg.env.dr.with_settings(dict(a.dr))
+    if a.calf_margin is not None:
+        cfg.env.calf_upper_margin = a.calf_margin
+    if a.calf_margin_ramp is not None:
+        target, n = a.calf_margin_ramp
+        e = cfg.env
+        now = e.soft_limit_margin if e.calf_upper_margin is None else e.calf_upper_margin
+        e.calf_margin_target, e.calf_margin_step = target, abs(target - now) / n
     run_dir = Path(a.run_dir or f"runs/tripod_s{a.seed}_{time.strftime('%Y%m%d_%H%M%S')}")
     t0 = time.time()
     if a.from_policy and cfg.env.plan_pool_file is None:
@@ -251,10 +259,12 @@ def _number(lo: float, hi: float, what: str):
 
 
 def _pack(a) -> int:
-    """Write the compiled training model and a plan pool, for a machine without the URDF /
-    example-robot-data (then train there with --model-file / --plan-pool)."""
+    """Write the compiled training model, a plan pool and the legs' inverse dynamics, for a
+    machine without the URDF / example-robot-data / pinocchio (then train there with
+    --model-file / --plan-pool / --leg-dynamics)."""
     import numpy as np
 
+    from deploy.leg_dynamics import LegDynamics
     from policy_train.config import EnvConfig
     from policy_train.env import PlanPool
     from policy_train.model import TrainModel
@@ -265,7 +275,8 @@ def _pack(a) -> int:
     TrainModel(c.physics_dt, c.kp, c.kd).save(out / "go2_train.mjb")
     PlanPool(a.plans_per_leg, c.t_r_range, c.n_basis, c.train_periods, c.physics_dt,
              np.random.default_rng(a.seed), c.ground_clearance).save(out / "pool.npz")
-    print(f"wrote {out / 'go2_train.mjb'} and {out / 'pool.npz'}")
+    LegDynamics.save_pack(out / "leg_dynamics.npz")
+    print(f"wrote {out / 'go2_train.mjb'}, {out / 'pool.npz'} and {out / 'leg_dynamics.npz'}")
     return 0
 
 
@@ -314,6 +325,17 @@ def _gains(text: str) -> tuple[float, float]:
     except ValueError as e:
         raise argparse.ArgumentTypeError(f"{text!r}: {e}") from None
     return kp, kd
+
+
+_CALF_MARGIN = _number(-0.3, 0.5, "must be in [-0.3, 0.5) rad")
+
+
+def _ramp(text: str) -> tuple[float, int]:
+    """argparse type: ``TARGET,ITERATIONS`` of the calf-clamp curriculum."""
+    target, sep, n = text.partition(",")
+    if not sep:
+        raise argparse.ArgumentTypeError(f"{text!r}: give TARGET,ITERATIONS, e.g. -0.1,300")
+    return _CALF_MARGIN(target), _positive(n)
 
 
 def _dr_setting(text: str) -> tuple[str, object]:
@@ -392,6 +414,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this")
     t.add_argument("--model-file", default=None, help="compiled training model (.mjb)")
     t.add_argument("--plan-pool", default=None, help="precomputed excitation plan pool (.npz)")
+    t.add_argument("--leg-dynamics", default=None,
+                   help="the legs' inverse dynamics (.npz of a2i-train pack) instead of the URDF's")
     t.add_argument("--resume", nargs="+", default=None, metavar="CKPT",
                    help="checkpoint to continue from (runs/<run>/model_<it>.pt, or an exported "
                         "policy's policies/<name>.train.pt); several of one run: from the newest "
@@ -413,6 +437,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="train on the left-right mirrored samples too (default: on for new runs, "
                         "the checkpoint's setting with --resume; before v5 it was off). Off "
                         "pays when the exported graph mirrors the other side's legs anyway")
+    t.add_argument("--calf-margin", type=_CALF_MARGIN, default=None, metavar="RAD",
+                   help="clamp the calves' targets this far inside their extension limit "
+                        "(< 0: beyond it; default 0.05, over a checkpoint's on --resume)")
+    t.add_argument("--calf-margin-ramp", type=_ramp, default=None, metavar="TARGET,ITERATIONS",
+                   help="move that clamp linearly to TARGET rad over ITERATIONS PPO iterations "
+                        "(a curriculum: a policy trained on the clamp winds its stance calves "
+                        "up to a clamp raised at once)")
     t.add_argument("--run-dir", default=None)
     t.add_argument("--export", default=None, help="after training, export to this path stem")
     d = sub.add_parser("distill", help="distil a policy into one that sees a history of noisy "
@@ -433,7 +464,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="Adam's learning rate (3e-4); on --resume it replaces the checkpoint's")
     d.add_argument("--lift-leg-weights", type=_weights, default=None, metavar="FL,FR,RL,RR")
     d.add_argument("--save-interval", type=_positive, default=None)
-    d.add_argument("--calf-margin", type=_number(-0.3, 0.5, "must be in [-0.3, 0.5) rad"),
+    d.add_argument("--calf-margin", type=_CALF_MARGIN,
                    default=None, metavar="RAD",
                    help="clamp the student's calf targets this far inside the calf's extension "
                         "limit (< 0: beyond it; default: the teacher's 0.05): a stance calf is a "

@@ -160,6 +160,12 @@ class EnvConfig:
     # it, and soft motors let it fold (docs/policy-training.md, "The stance calves are springs
     # on the target clamp")
     calf_upper_margin: float | None = None
+    # a curriculum for that clamp (a2i-train tripod --calf-margin-ramp): each iteration moves
+    # calf_upper_margin this many rad towards calf_margin_target, so a checkpoint holds the
+    # margin it reached and a resume goes on from there. Raised at once, a policy trained on
+    # the clamp winds its stance calves up to the new one and falls (v10 on board)
+    calf_margin_target: float | None = None
+    calf_margin_step: float = 0.0
     p_no_lift: float = 0.15           # probability that a command lifts no leg
     p_yaw_command: float = 0.5        # with no lift: probability of a yaw-rate command
     yaw_command: float = 0.5          # rad/s, uniform +-
@@ -209,6 +215,9 @@ class EnvConfig:
     threads: int = 0                  # MuJoCo batch threads; 0 = all CPUs
     model_file: str | None = None     # compiled .mjb (TrainModel.save) instead of the URDF
     plan_pool_file: str | None = None  # precomputed PlanPool (.npz) instead of optimising
+    # the lifted legs' inverse dynamics (LegDynamics.save_pack) instead of the URDF's through
+    # pinocchio: with the two above, training needs neither (a lent machine has none)
+    leg_dynamics_file: str | None = None
     rewards: RewardConfig = field(default_factory=RewardConfig)
     dr: DRConfig = field(default_factory=DRConfig)
 

@@ -199,6 +199,10 @@ class TripodEnv:
         self.default_pose = default_crouch("model")
         self.soft_lo, self.soft_hi = cfg.soft_limits(MODEL_LEGS)
         self.obs_terms = default_terms(model_to_sdk(self.default_pose), "zero")
+        if cfg.leg_dynamics_file:
+            from deploy.leg_dynamics import LegDynamics
+
+            LegDynamics.load_pack(cfg.leg_dynamics_file)
         if plan_pool is None and cfg.plan_pool_file:
             plan_pool = PlanPool.load(cfg.plan_pool_file)
         self.pool = plan_pool if plan_pool is not None else PlanPool(
@@ -295,6 +299,13 @@ class TripodEnv:
         arm = self.batch.expand("dof_armature")
         arm[:, 6:] = self.rng.uniform(*dr.armature, size=(N, 1))
         self.batch.set_const()
+
+    def set_calf_upper_margin(self, margin: float | None) -> None:
+        """Move the clamp of the calves' targets to ``margin`` rad inside their extension
+        limit (< 0: beyond it; None: ``soft_limit_margin``) from the next step on; targets
+        already past it are pulled back by the next step's clamp."""
+        self.cfg.calf_upper_margin = None if margin is None else float(margin)
+        self.soft_lo, self.soft_hi = self.cfg.soft_limits(MODEL_LEGS)
 
     # ------------------------------------------------------------------ reset
     def reset_all(self) -> None:

@@ -210,6 +210,17 @@ class Trainer:
             alg.optimizer.state.update(warm.state)
             alg.schedule, alg.learning_rate = schedule, lr
 
+    def _step_calf_margin(self) -> None:
+        """One iteration of the calf-clamp curriculum (``EnvConfig.calf_margin_target``)."""
+        e = self.cfg.env
+        if e.calf_margin_target is None:
+            return
+        now = e.soft_limit_margin if e.calf_upper_margin is None else e.calf_upper_margin
+        gap = e.calf_margin_target - now
+        if gap:
+            self.env.set_calf_upper_margin(now + float(np.clip(gap, -e.calf_margin_step,
+                                                               e.calf_margin_step)))
+
     def _learn(self, iterations: int, max_seconds: float | None, critic_only: bool) -> None:
         ppo = self.cfg.ppo
         start = self.iteration
@@ -230,6 +241,8 @@ class Trainer:
                 self.log(f"time limit reached after {self.iteration - start} iterations")
                 break
             self.env.p_excite = 0.0 if it < stage1_end else self.cfg.env.p_excite
+            if not critic_only:  # the warm-up's critic learns the policy as it stands
+                self._step_calf_margin()
             t0 = time.time()
             finished_r, finished_len, falls = [], [], 0
             with torch.inference_mode():
@@ -264,6 +277,8 @@ class Trainer:
                 "learning_rate": float(self.alg.learning_rate),
                 "stage": 1 if it < stage1_end else 2,
             }
+            if self.cfg.env.calf_upper_margin is not None:
+                rec["calf_upper_margin"] = self.cfg.env.calf_upper_margin
             if critic_only:
                 rec["critic_only"] = True
             self.history.append(rec)

@@ -103,7 +103,7 @@ def test_blended_accelerations_are_the_rates_derivative():
 
 
 def test_prepare_builds_what_the_loop_needs_before_it_starts():
-    cached = LegDynamics.of_leg.__func__
+    cached = LegDynamics._from_urdf.__func__
     cached.cache_clear()
     plain = LiftSchedule(t_r=0.3, periods=1, n_basis=6)
     plain.prepare("RR")
@@ -114,3 +114,51 @@ def test_prepare_builds_what_the_loop_needs_before_it_starts():
     hits = cached.cache_info().hits
     ff.targets("RR", ff.total("RR") - 0.1, np.array([0.0, 0.9, -1.8]))
     assert cached.cache_info().hits > hits and cached.cache_info().currsize == 1
+
+
+def test_a_pack_gives_the_urdfs_torques_where_there_is_no_pinocchio(tmp_path):
+    """``save_pack`` here, ``load_pack`` in a process that can import neither pinocchio nor
+    find the URDF (a lent training machine): the same torques, bit for bit."""
+    import json
+    import subprocess
+    import sys
+
+    pack = tmp_path / "leg_dynamics.npz"
+    LegDynamics.save_pack(pack)
+    rng = np.random.default_rng(3)
+    q, dq, ddq = rng.normal(size=(3, 5, 3))
+    g = np.array([0.1, -0.2, -0.97])
+    code = f"""
+import sys, json
+sys.modules["pinocchio"] = None
+import numpy as np
+import calib.robot
+def _none():
+    raise RuntimeError("no URDF")
+calib.robot.go2_urdf_path = _none
+from deploy.leg_dynamics import LegDynamics
+from deploy.lift_schedule import LiftSchedule
+print(json.dumps(LegDynamics.load_pack({str(pack)!r})))
+q, dq, ddq = (np.array(x) for x in json.loads(sys.stdin.read()))
+print(json.dumps({{leg: LiftSchedule.feedforward_torque(leg, q, dq, ddq, {g.tolist()}).tolist()
+                  for leg in ("FL", "FR", "RL", "RR")}}))
+"""
+    p = subprocess.run([sys.executable, "-c", code], input=json.dumps([q.tolist(), dq.tolist(),
+                       ddq.tolist()]), capture_output=True, text=True, timeout=60, check=False)
+    assert p.returncode == 0, p.stderr[-2000:]
+    legs, torques = (json.loads(line) for line in p.stdout.splitlines())
+    assert legs == ["FL", "FR", "RL", "RR"]
+    for leg in legs:
+        np.testing.assert_array_equal(
+            torques[leg], LiftSchedule.feedforward_torque(leg, q, dq, ddq, g))
+
+
+def test_a_file_that_is_no_pack_is_refused_with_its_name(tmp_path):
+    bad = tmp_path / "bad.npz"
+    bad.write_text("not numpy")
+    with pytest.raises(ValueError, match="bad.npz: not a leg-dynamics pack"):
+        LegDynamics.load_pack(bad)
+    other = tmp_path / "other.npz"
+    np.savez(other, x=np.zeros(3))
+    with pytest.raises(ValueError, match="not a leg-dynamics pack"):
+        LegDynamics.load_pack(other)

@@ -344,7 +344,10 @@ def test_bad_lift_gains_exit_2_with_one_line(value, exported, tmp_path, capsys):
                                      "latency_steps=0,1.5", "push_vel=-1", "friction=0.3",
                                      "enabled=0")],
     ("--threads", "0", "--threads"), ("--critic-warmup", "-1", "--critic-warmup"),
-    ("--init-std", "0", "--init-std"), ("--learning-rate", "0", "--learning-rate")])
+    ("--init-std", "0", "--init-std"), ("--learning-rate", "0", "--learning-rate"),
+    ("--calf-margin", "-0.5", "--calf-margin"),
+    *[("--calf-margin-ramp", v, "--calf-margin-ramp") for v in ("-0.1", "-0.1,0", "x,3",
+                                                                 "0.6,3", "-0.1,2.5")]])
 def test_bad_tripod_option_exits_2_with_one_line(option, value, hint, capsys):
     from policy_train.cli import main
 
@@ -435,6 +438,67 @@ def test_dr_settings_change_a_resumed_runs_randomisation(exported):
     before = torch.load(d / "run" / "model_2.pt", weights_only=False,
                         map_location="cpu")["train_config"]["env"]["dr"]
     assert tuple(dr["friction"]) == tuple(before["friction"])  # the rest is the run's own
+
+
+def test_calf_margin_ramp_raises_the_clamp_each_iteration_and_resume_goes_on(exported,
+                                                                               tmp_path):
+    """``--calf-margin-ramp TARGET,N`` moves the calves' target clamp from the checkpoint's
+    margin (0.05) to TARGET in N equal steps, one per PPO iteration; the checkpoints hold
+    the margin reached, a resume without the option goes on to TARGET and stops there, and the
+    export's soft limits are the clamp the policy ended on."""
+    import torch
+
+    from calib.joints import position_limits
+
+    d, _ = exported
+    common = ["--iterations", "2", "--num-envs", "8", "--plans-per-leg", "1",
+              "--steps-per-env", "8", "--threads", "1"]
+    cmd = [sys.executable, "-m", "policy_train.cli", "tripod", "--resume",
+           str(d / "run" / "model_2.pt"), *common, "--run-dir", str(tmp_path / "a"),
+           "--calf-margin-ramp=-0.07,3"]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    ckpt = torch.load(tmp_path / "a" / "model_4.pt", weights_only=False, map_location="cpu")
+    margins = [h["calf_upper_margin"] for h in ckpt["history"][-2:]]
+    assert margins == pytest.approx([0.01, -0.03])
+    assert ckpt["train_config"]["env"]["calf_upper_margin"] == pytest.approx(-0.03)
+    cmd = [sys.executable, "-m", "policy_train.cli", "tripod", "--resume",
+           str(tmp_path / "a" / "model_4.pt"), *common, "--run-dir", str(tmp_path / "b"),
+           "--export", str(tmp_path / "ramped")]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    ckpt = torch.load(tmp_path / "b" / "model_6.pt", weights_only=False, map_location="cpu")
+    assert [h["calf_upper_margin"] for h in ckpt["history"][-2:]] == pytest.approx([-0.07, -0.07])
+    upper = json.loads((tmp_path / "ramped.json").read_text())["soft_limits"]["upper"]
+    assert upper[2] == pytest.approx(position_limits("FR")[1][2] + 0.07)  # FR calf, SDK order
+    assert upper[1] == pytest.approx(position_limits("FR")[1][1] - 0.05)  # its thigh: unmoved
+
+
+def test_pack_trains_on_a_machine_without_the_urdf_or_pinocchio(tmp_path):
+    """``a2i-train pack`` writes what training needs from the URDF (the compiled model, a plan
+    pool, the lifted legs' inverse dynamics for the feed-forward); with them ``tripod`` runs in
+    a process that can import no pinocchio and find no URDF, and without the dynamics it
+    cannot (so the run does reach the feed-forward)."""
+    from policy_train.cli import main
+
+    assert main(["pack", str(tmp_path / "pack"), "--plans-per-leg", "1"]) == 0
+    files = {f: str(tmp_path / "pack" / f) for f in ("go2_train.mjb", "pool.npz",
+                                                     "leg_dynamics.npz")}
+    code = ("import sys; sys.modules['pinocchio'] = None; import calib.robot\n"
+            "def _none():\n    raise RuntimeError('no URDF here')\n"
+            "calib.robot.go2_urdf_path = _none\n"
+            "from policy_train.cli import main; sys.exit(main(sys.argv[1:]))")
+    base = [sys.executable, "-c", code, "tripod", "--iterations", "1", "--num-envs", "32",
+            "--steps-per-env", "8", "--threads", "1", "--model-file", files["go2_train.mjb"],
+            "--plan-pool", files["pool.npz"]]
+    p = subprocess.run([*base, "--run-dir", str(tmp_path / "a")], capture_output=True, text=True,
+                       timeout=240, check=False)
+    assert p.returncode != 0 and "pinocchio" in p.stderr
+    p = subprocess.run([*base, "--leg-dynamics", files["leg_dynamics.npz"], "--run-dir",
+                        str(tmp_path / "b")], capture_output=True, text=True, timeout=240,
+                       check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    assert (tmp_path / "b" / "model_1.pt").exists()
 
 
 def test_export_writes_the_training_state_that_resume_continues(exported, tmp_path):
