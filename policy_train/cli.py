@@ -14,7 +14,10 @@
                  [--legs FL,FR,RL,RR] [--out docs/results/policy_transfer.md]
                                    (the calibration re-run on sim.go2 under perturbations)
   a2i-train compare A.json B.json  (two transfer runs on the same draws, episode by episode)
-  a2i-train pack OUTDIR            (compiled model + plan pool for a machine without the URDF)
+  a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD] [--lift-gains KP,KD]
+                                   (the same network with other deploy gains)
+  a2i-train pack OUTDIR            (compiled model, plan pool and leg dynamics for a machine
+                                    without the URDF)
 
 Checkpoints go to ``runs/<run>/model_<it>.pt`` (``runs/`` is not committed).
 """
@@ -22,6 +25,7 @@ Checkpoints go to ``runs/<run>/model_<it>.pt`` (``runs/`` is not committed).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -183,6 +187,16 @@ def _export(a) -> int:
     return 0
 
 
+def _derive(a) -> int:
+    from policy_train.export import derive_policy
+
+    if a.gains is None and a.lift_gains is None:
+        raise SystemExit("a2i-train derive: give --gains and/or --lift-gains")
+    onnx_path, json_path = derive_policy(a.onnx, a.out, a.gains, a.lift_gains)
+    print(f"wrote {onnx_path} and {json_path} (the network of {a.onnx})")
+    return 0
+
+
 def _transfer(a) -> int:
     from policy_train.transfer import SCENARIOS, summarise, timed_run, write_results
 
@@ -336,6 +350,17 @@ def _ramp(text: str) -> tuple[float, int]:
     if not sep:
         raise argparse.ArgumentTypeError(f"{text!r}: give TARGET,ITERATIONS, e.g. -0.1,300")
     return _CALF_MARGIN(target), _positive(n)
+
+
+def _joint_gains(text: str) -> tuple[float, float]:
+    """argparse type: ``KP,KD`` of every joint (kp > 0, kd >= 0)."""
+    try:
+        kp, kd = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give KP,KD, e.g. 23,0.575") from None
+    if not (math.isfinite(kp) and math.isfinite(kd) and kp > 0 and kd >= 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: kp must be > 0 and kd >= 0")
+    return kp, kd
 
 
 def _dr_setting(text: str) -> tuple[str, object]:
@@ -496,6 +521,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="the lifted leg's PD gains in the JSON's lift_schedule, KP > 0, KD >= 0 (default: the "
                         "training's, 40,1); stiffer gains track the plan through joint damping "
                         "the training did not model")
+    g = sub.add_parser("derive", help="a copy of an exported policy with other deploy gains "
+                       "(the network unchanged)")
+    g.add_argument("onnx", help="the exported policy (its .json beside it)")
+    g.add_argument("--out", required=True, help="path stem, e.g. policies/tripod_v2")
+    g.add_argument("--gains", type=_joint_gains, default=None, metavar="KP,KD",
+                   help="every joint's PD gains (N m/rad, N m s/rad) the policy commands")
+    g.add_argument("--lift-gains", type=_gains, default=None, metavar="KP,KD",
+                   help="the lifted leg's gains, as export --lift-gains")
     v = sub.add_parser("eval", help="evaluate an exported policy (onnxruntime)")
     v.add_argument("onnx")
     v.add_argument("--episodes", type=int, default=100)
@@ -556,10 +589,10 @@ def main(argv: list[str] | None = None) -> int:
         from policy_train.transfer import SCENARIOS
 
         a.scenarios = tuple(SCENARIOS)
-    if a.cmd in ("eval", "transfer") and a.onnx and not Path(a.onnx).with_suffix(".json").is_file():
+    if a.cmd in ("eval", "transfer", "derive") and a.onnx and not Path(a.onnx).with_suffix(".json").is_file():
         p.error(f"{Path(a.onnx).with_suffix('.json')}: no policy metadata beside the ONNX file")
     try:
-        return {"tripod": _tripod, "distill": _distill, "export": _export, "eval": _eval,
+        return {"tripod": _tripod, "distill": _distill, "export": _export, "derive": _derive, "eval": _eval,
                 "transfer": _transfer,
                 "compare": _compare, "pack": _pack}[a.cmd](a)
     except (OSError, ValueError) as e:

@@ -75,6 +75,12 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
     cfg.episode_s = 1e6  # episodes end with the motion, not by time-out
     cfg.action_scale = float(meta["action"]["scale"])
     cfg.action_clip = float(meta["action"]["clip"])
+    # the JSON's joint gains, as deploy sends them (the randomisation scales them from there)
+    kp, kd = (np.asarray(meta[k], dtype=float) for k in ("kp", "kd"))
+    if np.ptp(kp) or np.ptp(kd):
+        raise ValueError("the policy's kp / kd differ between joints; the evaluation's "
+                         "environment has one gain for every joint")
+    cfg.kp, cfg.kd = float(kp[0]), float(kd[0])
     sched = LiftSchedule.from_metadata(meta["lift_schedule"])
     cfg.shift_s, cfg.lift_s, cfg.hold_s, cfg.lower_s = sched.shift, sched.lift, sched.hold, sched.lower
     cfg.lift_kp, cfg.lift_kd, cfg.lift_feedforward = sched.kp, sched.kd, sched.feedforward
@@ -384,7 +390,8 @@ def _report(r: dict, meta: dict, table: str) -> str:
 Policy `{r['policy']}` (commit `{meta.get('commit')}`, seed {meta.get('seed')},
 {_training(meta)}{_averaged(meta)}). Produced by
 `a2i-train eval {r.get('path', 'policies/' + r['policy'])} --episodes {r['episodes_per_leg']}` (seed {r['seed']}):
-the ONNX through onnxruntime, the JSON's observation terms, action and lift schedule (the
+the ONNX through onnxruntime, the JSON's observation terms, action, joint gains (kp
+{meta['kp'][0]:g} / kd {meta['kd'][0]:g}{_gains_note(meta)}) and lift schedule (the
 lifted leg at kp {meta['lift_schedule']['kp']:g} / kd {meta['lift_schedule']['kd']:g}{_lift_gains_note(meta)}).
 
 Each episode: the standard domain randomisation (`DRConfig`'s defaults, the same for
@@ -415,6 +422,15 @@ the calibration motions (paper's two phases).
 | --- | --- | --- | --- | --- |
 {_curve(meta)}
 """
+
+
+def _gains_note(meta: dict) -> str:
+    """Whether the joints' gains are the training's: ``a2i-train derive`` may set others."""
+    env = meta.get("train_config", {}).get("env", {})
+    kp, kd = env.get("kp"), env.get("kd")
+    if kp is None or (kp == meta["kp"][0] and kd == meta["kd"][0]):
+        return ""
+    return f"; trained at {kp:g} / {kd:g}"
 
 
 def _lift_gains_note(meta: dict) -> str:

@@ -24,8 +24,8 @@ from deploy.lift_schedule import LiftSchedule
 from deploy.observation import OBS_SIZE
 from policy_train.config import TrainConfig
 
-__all__ = ["average_checkpoints", "build_metadata", "export_policy", "git_commit",
-           "train_state_path"]
+__all__ = ["average_checkpoints", "build_metadata", "derive_policy", "export_policy",
+           "git_commit", "train_state_path"]
 
 # s, the deploy schedule's excitation: 0.4, faster than calib's 0.5 default, for more foot
 # angular velocity per second at the same success (docs/policy-training.md, "Adopted: a
@@ -223,6 +223,52 @@ def export_policy(checkpoint, out_stem: str | Path,
     write_bytes_atomic(onnx_path, data)
     write_text_atomic(json_path, json.dumps(meta, indent=1) + "\n")
     write_bytes_atomic(train_state_path(onnx_path), state.getvalue())
+    return onnx_path, json_path
+
+
+def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
+                  lift_gains=None) -> tuple[Path, Path]:
+    """Write ``<out_stem>.onnx`` (the source's network, byte for byte) and ``<out_stem>.json``
+    (the source's, with other deploy gains) for a policy whose checkpoints are gone.
+
+    gains: (kp, kd) of every joint the policy commands (its JSON's ``kp`` / ``kd``, the PD law
+    deploy sends and the evaluation plays); lift_gains: the lifted leg's, as :func:`export_policy`.
+    The JSON's ``derived_from`` names the source, its commit and the gains it had; its
+    evaluation figures are dropped (they were measured with the source's gains).
+    ValueError on a source that is not an exported policy or on gains deploy refuses."""
+    from deploy.policy import PolicyMeta
+
+    src = Path(source_onnx)
+    src_json = src.with_suffix(".json")
+    try:
+        meta = json.loads(src_json.read_text())
+        data = src.read_bytes()
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{src_json if isinstance(e, json.JSONDecodeError) else src}: "
+                         f"not an exported policy ({e})") from None
+    out_stem = Path(out_stem)
+    name = out_stem.name.removesuffix(".onnx")
+    meta["derived_from"] = {"policy": src.name, "commit": meta.get("commit"),
+                            "kp": meta.get("kp"), "kd": meta.get("kd"),
+                            "lift_gains": [meta["lift_schedule"]["kp"],
+                                           meta["lift_schedule"]["kd"]]}
+    if gains is not None:
+        kp, kd = (float(g) for g in gains)
+        if not (np.isfinite(kp) and np.isfinite(kd) and kp > 0 and kd >= 0):
+            raise ValueError(f"gains must be kp > 0, kd >= 0, got {kp:g}, {kd:g}")
+        meta["kp"], meta["kd"] = [kp] * 12, [kd] * 12
+    if lift_gains is not None:
+        kp, kd = (float(g) for g in lift_gains)
+        meta["lift_schedule"] = {**meta["lift_schedule"], "kp": kp, "kd": kd}
+        LiftSchedule.from_metadata(meta["lift_schedule"])  # deploy's rule for the gains
+    meta.update(name=name, onnx=f"{name}.onnx", commit=git_commit(), evaluation={},
+                created_utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
+    meta.pop("evaluation_nominal", None)
+    onnx_path, json_path = out_stem.with_name(name + ".onnx"), out_stem.with_name(name + ".json")
+    PolicyMeta.from_dict(meta, json_path)  # as deploy will read it: ValueError before writing
+    onnx_path.parent.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(onnx_path, data)
+    write_text_atomic(json_path, json.dumps(meta, indent=1) + "\n")
     return onnx_path, json_path
 
 

@@ -324,6 +324,54 @@ def test_lift_gains_go_to_the_json_and_the_evaluation_plays_them(exported, tmp_p
     assert "lifted leg at kp 40 / kd 1)" in out.read_text()
 
 
+def test_derive_sets_the_deploy_gains_and_the_evaluation_plays_them(exported, tmp_path):
+    """`derive --gains 23,0.575`: the same network byte for byte, the JSON's kp / kd (what
+    deploy sends) set, its source named, its evaluation dropped; the evaluation plays those
+    gains and says they are not the training's."""
+    from policy_train.cli import main
+    from policy_train.evaluate import evaluate_policy, evaluation_env
+
+    d, _ = exported
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"),
+                 "--gains", "23,0.575"]) == 0
+    assert (tmp_path / "g.onnx").read_bytes() == (d / "pol.onnx").read_bytes()
+    meta = json.loads((tmp_path / "g.json").read_text())
+    src = json.loads((d / "pol.json").read_text())
+    assert meta["kp"] == [23.0] * 12 and meta["kd"] == [0.575] * 12
+    assert meta["derived_from"]["policy"] == "pol.onnx" and meta["derived_from"]["kp"] == src["kp"]
+    assert (meta["name"], meta["onnx"], meta["evaluation"]) == ("g", "g.onnx", {})
+    assert meta["lift_schedule"] == src["lift_schedule"]
+    env, _ = evaluation_env(meta, ("FL",), 1, seed=1)
+    assert (env.cfg.kp, env.cfg.kd) == (23.0, 0.575)
+    plain, _ = evaluation_env(src, ("FL",), 1, seed=1)
+    assert (plain.cfg.kp, plain.cfg.kd) == (20.0, 0.5)
+    out = tmp_path / "policy.md"
+    evaluate_policy(tmp_path / "g.onnx", episodes=1, legs=("FL",), results_path=out,
+                    log=lambda s: None)
+    assert "joint gains (kp 23 / kd 0.575; trained at 20 / 0.5)" in " ".join(
+        out.read_text().split())
+    meta["kp"][0] = 30.0
+    with pytest.raises(ValueError, match="differ between joints"):
+        evaluation_env(meta, ("FL",), 1, seed=1)
+
+
+@pytest.mark.parametrize(("extra", "hint"), [
+    ([], "--gains"), (["--gains", "0,0.5"], "--gains"), (["--gains", "20"], "--gains"),
+    (["--gains", "nan,1"], "--gains"), (["--lift-gains", "0,2"], "--lift-gains")])
+def test_bad_derive_exits_with_one_line(extra, hint, exported, tmp_path, capsys):
+    from policy_train.cli import main
+
+    d, _ = exported
+    with pytest.raises(SystemExit) as exc:
+        main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"), *extra])
+    assert exc.value.code not in (0, None)
+    # argparse: exit 2 and one "error:" line; a missing choice: SystemExit with its line
+    err = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    lines = err if exc.value.code == 2 else [str(exc.value.code)]
+    assert len(lines) == 1 and hint in lines[0]
+    assert not (tmp_path / "g.json").exists()
+
+
 @pytest.mark.parametrize("value", ["80", "0,2", "80,-1", "a,b", "nan,1", "inf,2"])
 def test_bad_lift_gains_exit_2_with_one_line(value, exported, tmp_path, capsys):
     from policy_train.cli import main
