@@ -246,12 +246,12 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     except (OSError, json.JSONDecodeError) as e:
         raise ValueError(f"{src_json if isinstance(e, json.JSONDecodeError) else src}: "
                          f"not an exported policy ({e})") from None
+    sched = PolicyMeta.from_dict(meta, src_json).schedule  # ValueError unless deploy reads it
     out_stem = Path(out_stem)
     name = out_stem.name.removesuffix(".onnx")
     meta["derived_from"] = {"policy": src.name, "commit": meta.get("commit"),
-                            "kp": meta.get("kp"), "kd": meta.get("kd"),
-                            "lift_gains": [meta["lift_schedule"]["kp"],
-                                           meta["lift_schedule"]["kd"]]}
+                            "kp": meta["kp"], "kd": meta["kd"],
+                            "lift_gains": [sched.kp, sched.kd]}
     if gains is not None:
         kp, kd = (float(g) for g in gains)
         if not (np.isfinite(kp) and np.isfinite(kd) and kp > 0 and kd >= 0):
@@ -259,7 +259,7 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
         meta["kp"], meta["kd"] = [kp] * 12, [kd] * 12
     if lift_gains is not None:
         kp, kd = (float(g) for g in lift_gains)
-        meta["lift_schedule"] = {**meta["lift_schedule"], "kp": kp, "kd": kd}
+        meta["lift_schedule"] = {**(meta.get("lift_schedule") or {}), "kp": kp, "kd": kd}
         LiftSchedule.from_metadata(meta["lift_schedule"])  # deploy's rule for the gains
     meta.update(name=name, onnx=f"{name}.onnx", commit=git_commit(), evaluation={},
                 created_utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))

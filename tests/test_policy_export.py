@@ -353,6 +353,13 @@ def test_derive_sets_the_deploy_gains_and_the_evaluation_plays_them(exported, tm
     meta["kp"][0] = 30.0
     with pytest.raises(ValueError, match="differ between joints"):
         evaluation_env(meta, ("FL",), 1, seed=1)
+    # a source deploy would not read is refused, and nothing is written
+    del meta["kp"]
+    (tmp_path / "bad.json").write_text(json.dumps(meta))
+    (tmp_path / "bad.onnx").write_bytes(b"")
+    assert main(["derive", str(tmp_path / "bad.onnx"), "--out", str(tmp_path / "h"),
+                 "--gains", "23,0.575"]) == 2
+    assert not (tmp_path / "h.json").exists()
 
 
 @pytest.mark.parametrize(("extra", "hint"), [
