@@ -259,6 +259,22 @@ class LiftSchedule:
         return np.clip(tau, -EFFORT_LIMIT, EFFORT_LIMIT)
 
     @staticmethod
+    def save_dynamics_pack(path) -> None:
+        """Write the legs' inverse dynamics the feed-forward uses, for a machine without the
+        URDF or pinocchio (:meth:`deploy.leg_dynamics.LegDynamics.save_pack`)."""
+        from deploy.leg_dynamics import LegDynamics
+
+        LegDynamics.save_pack(path)
+
+    @staticmethod
+    def load_dynamics_pack(path) -> tuple[str, ...]:
+        """Take the feed-forward's leg dynamics from a :meth:`save_dynamics_pack` file from now
+        on (this process); returns its legs. ValueError if it is not such a file."""
+        from deploy.leg_dynamics import LegDynamics
+
+        return LegDynamics.load_pack(path)
+
+    @staticmethod
     def feedforward_table(leg: str, q, dq, ddq):
         """:meth:`feedforward_torque` of a tabulated plan (N, 3 each) as a
         :class:`deploy.leg_dynamics.TorqueTable`, the tilt given per sample."""

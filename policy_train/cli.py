@@ -278,7 +278,7 @@ def _pack(a) -> int:
     --model-file / --plan-pool / --leg-dynamics)."""
     import numpy as np
 
-    from deploy.leg_dynamics import LegDynamics
+    from deploy.lift_schedule import LiftSchedule
     from policy_train.config import EnvConfig
     from policy_train.env import PlanPool
     from policy_train.model import TrainModel
@@ -289,7 +289,7 @@ def _pack(a) -> int:
     TrainModel(c.physics_dt, c.kp, c.kd).save(out / "go2_train.mjb")
     PlanPool(a.plans_per_leg, c.t_r_range, c.n_basis, c.train_periods, c.physics_dt,
              np.random.default_rng(a.seed), c.ground_clearance).save(out / "pool.npz")
-    LegDynamics.save_pack(out / "leg_dynamics.npz")
+    LiftSchedule.save_dynamics_pack(out / "leg_dynamics.npz")
     print(f"wrote {out / 'go2_train.mjb'}, {out / 'pool.npz'} and {out / 'leg_dynamics.npz'}")
     return 0
 

@@ -215,7 +215,7 @@ class EnvConfig:
     threads: int = 0                  # MuJoCo batch threads; 0 = all CPUs
     model_file: str | None = None     # compiled .mjb (TrainModel.save) instead of the URDF
     plan_pool_file: str | None = None  # precomputed PlanPool (.npz) instead of optimising
-    # the lifted legs' inverse dynamics (LegDynamics.save_pack) instead of the URDF's through
+    # the lifted legs' inverse dynamics (LiftSchedule.save_dynamics_pack) instead of the URDF's through
     # pinocchio: with the two above, training needs neither (a lent machine has none)
     leg_dynamics_file: str | None = None
     rewards: RewardConfig = field(default_factory=RewardConfig)

@@ -200,9 +200,7 @@ class TripodEnv:
         self.soft_lo, self.soft_hi = cfg.soft_limits(MODEL_LEGS)
         self.obs_terms = default_terms(model_to_sdk(self.default_pose), "zero")
         if cfg.leg_dynamics_file:
-            from deploy.leg_dynamics import LegDynamics
-
-            LegDynamics.load_pack(cfg.leg_dynamics_file)
+            LiftSchedule.load_dynamics_pack(cfg.leg_dynamics_file)
         if plan_pool is None and cfg.plan_pool_file:
             plan_pool = PlanPool.load(cfg.plan_pool_file)
         self.pool = plan_pool if plan_pool is not None else PlanPool(
