@@ -326,14 +326,19 @@ def _leg_list(text: str) -> tuple[str, ...]:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
+def _kp_kd(text: str, example: str) -> tuple[float, float]:
+    try:
+        kp, kd = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: give KP,KD, e.g. {example}") from None
+    return kp, kd
+
+
 def _gains(text: str) -> tuple[float, float]:
     """argparse type: ``KP,KD`` (N m/rad, N m s/rad), as the lift schedule accepts them."""
     from deploy.lift_schedule import LiftSchedule
 
-    try:
-        kp, kd = (float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: give KP,KD, e.g. 80,2") from None
+    kp, kd = _kp_kd(text, "80,2")
     try:
         LiftSchedule(kp=kp, kd=kd)
     except ValueError as e:
@@ -354,10 +359,7 @@ def _ramp(text: str) -> tuple[float, int]:
 
 def _joint_gains(text: str) -> tuple[float, float]:
     """argparse type: ``KP,KD`` of every joint (kp > 0, kd >= 0)."""
-    try:
-        kp, kd = (float(x) for x in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: give KP,KD, e.g. 23,0.575") from None
+    kp, kd = _kp_kd(text, "23,0.575")
     if not (math.isfinite(kp) and math.isfinite(kd) and kp > 0 and kd >= 0):
         raise argparse.ArgumentTypeError(f"{text!r}: kp must be > 0 and kd >= 0")
     return kp, kd
