@@ -14,7 +14,7 @@
                  [--legs FL,FR,RL,RR] [--out docs/results/policy_transfer.md]
                                    (the calibration re-run on sim.go2 under perturbations)
   a2i-train compare A.json B.json  (two transfer runs on the same draws, episode by episode)
-  a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD] [--lift-gains KP,KD]
+  a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD]
                                    (the same network with other deploy gains)
   a2i-train pack OUTDIR            (compiled model, plan pool and leg dynamics for a machine
                                     without the URDF)
@@ -357,11 +357,18 @@ def _ramp(text: str) -> tuple[float, int]:
     return _CALF_MARGIN(target), _positive(n)
 
 
-def _joint_gains(text: str) -> tuple[float, float]:
-    """argparse type: ``KP,KD`` of every joint (kp > 0, kd >= 0)."""
-    kp, kd = _kp_kd(text, "23,0.575")
-    if not (math.isfinite(kp) and math.isfinite(kd) and kp > 0 and kd >= 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: kp must be > 0 and kd >= 0")
+def _joint_gains(text: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """argparse type: ``KP,KD`` of every joint, or ``KP,KD/KP,KD/KP,KD`` of the hips, thighs
+    and calves (kp > 0, kd >= 0); (kp, kd), each one value or three."""
+    parts = text.split("/")
+    if len(parts) not in (1, 3):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give KP,KD or HIP_KP,HIP_KD/THIGH_KP,THIGH_KD/CALF_KP,CALF_KD")
+    pairs = [_kp_kd(p, "23,0.575 or 29,0.725/29,0.725/23,0.575") for p in parts]
+    for kp, kd in pairs:
+        if not (math.isfinite(kp) and math.isfinite(kd) and kp > 0 and kd >= 0):
+            raise argparse.ArgumentTypeError(f"{text!r}: kp must be > 0 and kd >= 0")
+    kp, kd = zip(*pairs, strict=True)
     return kp, kd
 
 
@@ -528,7 +535,8 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("onnx", help="the exported policy (its .json beside it)")
     g.add_argument("--out", required=True, help="path stem, e.g. policies/tripod_v2")
     g.add_argument("--gains", type=_joint_gains, default=None, metavar="KP,KD",
-                   help="every joint's PD gains (N m/rad, N m s/rad) the policy commands")
+                   help="the PD gains (N m/rad, N m s/rad) the policy commands: KP,KD for every "
+                        "joint, or HIP_KP,HIP_KD/THIGH_KP,THIGH_KD/CALF_KP,CALF_KD on every leg")
     g.add_argument("--lift-gains", type=_gains, default=None, metavar="KP,KD",
                    help="the lifted leg's gains, as export --lift-gains")
     v = sub.add_parser("eval", help="evaluate an exported policy (onnxruntime)")

@@ -146,8 +146,10 @@ class EnvConfig:
     decimation: int = 4
     episode_s: float = 20.0
     command_resample_s: float = 10.0
-    kp: float = 20.0
-    kd: float = 0.5
+    # one gain for every joint, or 12 in model order (an evaluation of a JSON whose deploy gains
+    # differ between joints; training takes one)
+    kp: float | tuple[float, ...] = 20.0
+    kd: float | tuple[float, ...] = 0.5
     action_scale: float = 0.1
     action_clip: float = 1.0
     obs_clip: float = 100.0

@@ -177,8 +177,15 @@ class TripodEnv:
         if cfg.num_envs < 1:
             raise ValueError("num_envs must be >= 1")
         self.rng = np.random.default_rng(cfg.seed)
+        # (12,) model order, N m/rad and N m s/rad; step() writes every environment's gains
+        # before each physics step, so the compiled model's only need to be plausible
+        self._kp, self._kd = (np.broadcast_to(np.asarray(g, dtype=float), (12,)).copy()
+                              for g in (cfg.kp, cfg.kd))
+        if np.any(self._kp <= 0) or np.any(self._kd < 0):
+            raise ValueError("kp must be > 0 and kd >= 0")
         self.tm = train_model if train_model is not None else TrainModel(
-            cfg.physics_dt, cfg.kp, cfg.kd, model_file=cfg.model_file)
+            cfg.physics_dt, float(self._kp.mean()), float(self._kd.mean()),
+            model_file=cfg.model_file)
         m = self.tm.model
         self.N = N = cfg.num_envs
         if cfg.obs_history < 1:
@@ -222,11 +229,11 @@ class TripodEnv:
         # level tripod stances in static equilibrium, one per lifted leg (reference starts)
         self.ref_poses = [tripod_pose(
             m, li, self.default_pose, self.pool.q0[self.pool.of_leg(li)[0]],
-            cfg.rewards.base_height_target, cfg.reference_margin_m, cfg.kp, cfg.lift_kp)
+            cfg.rewards.base_height_target, cfg.reference_margin_m, self._kp, cfg.lift_kp)
             for li in range(4)] if cfg.p_reference_start > 0 else []
         self.shift_poses = [tripod_pose(
             m, li, self.default_pose, self.pool.q0[self.pool.of_leg(li)[0]],
-            cfg.rewards.base_height_target, cfg.reference_margin_m, cfg.kp, cfg.lift_kp,
+            cfg.rewards.base_height_target, cfg.reference_margin_m, self._kp, cfg.lift_kp,
             lifted=False) for li in range(4)] if self.ref_poses else []
         w = np.asarray(cfg.lift_leg_weights, dtype=float)
         if w.shape != (4,) or np.any(w < 0) or w.sum() <= 0:
@@ -478,8 +485,8 @@ class TripodEnv:
         self.past_targets[:, 1:] = self.past_targets[:, :-1]
         self.past_targets[:, 0] = self.target
         self.target[:] = np.clip(self.target + cfg.action_scale * a_m, self.soft_lo, self.soft_hi)
-        kp = (cfg.kp * self.kp_s * self.strength)[:, None].repeat(12, 1)
-        kd = (cfg.kd * self.kd_s * self.strength)[:, None].repeat(12, 1)
+        kp = self._kp * (self.kp_s * self.strength)[:, None]
+        kd = self._kd * (self.kd_s * self.strength)[:, None]
         self.foot_touch[:] = False
         self.geom_touch[:] = False
         self.base_touch[:] = False

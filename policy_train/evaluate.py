@@ -27,7 +27,7 @@ import numpy as np
 
 from calib.atomic import write_text_atomic
 from calib.excitation import base_to_foot, covariance_kappa, foot_omega
-from calib.joints import MODEL_LEGS
+from calib.joints import MODEL_LEGS, sdk_to_model
 from deploy.lift_schedule import PHASES, LiftSchedule
 from policy_train.config import RANDOMISATIONS, DRConfig, TrainConfig
 from policy_train.env import PlanPool, TripodEnv
@@ -76,11 +76,8 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
     cfg.action_scale = float(meta["action"]["scale"])
     cfg.action_clip = float(meta["action"]["clip"])
     # the JSON's joint gains, as deploy sends them (the randomisation scales them from there)
-    kp, kd = (np.asarray(meta[k], dtype=float) for k in ("kp", "kd"))
-    if np.ptp(kp) or np.ptp(kd):
-        raise ValueError("the policy's kp / kd differ between joints; the evaluation's "
-                         "environment has one gain for every joint")
-    cfg.kp, cfg.kd = float(kp[0]), float(kd[0])
+    kp, kd = (sdk_to_model(np.asarray(meta[k], dtype=float)) for k in ("kp", "kd"))
+    cfg.kp, cfg.kd = (float(g[0]) if not np.ptp(g) else tuple(map(float, g)) for g in (kp, kd))
     sched = LiftSchedule.from_metadata(meta["lift_schedule"])
     cfg.shift_s, cfg.lift_s, cfg.hold_s, cfg.lower_s = sched.shift, sched.lift, sched.hold, sched.lower
     cfg.lift_kp, cfg.lift_kd, cfg.lift_feedforward = sched.kp, sched.kd, sched.feedforward
@@ -390,8 +387,7 @@ def _report(r: dict, meta: dict, table: str) -> str:
 Policy `{r['policy']}` (commit `{meta.get('commit')}`, seed {meta.get('seed')},
 {_training(meta)}{_averaged(meta)}). Produced by
 `a2i-train eval {r.get('path', 'policies/' + r['policy'])} --episodes {r['episodes_per_leg']}` (seed {r['seed']}):
-the ONNX through onnxruntime, the JSON's observation terms, action, joint gains (kp
-{meta['kp'][0]:g} / kd {meta['kd'][0]:g}{_gains_note(meta)}) and lift schedule (the
+the ONNX through onnxruntime, the JSON's observation terms, action, joint gains ({_gains_words(meta)}{_gains_note(meta)}) and lift schedule (the
 lifted leg at kp {meta['lift_schedule']['kp']:g} / kd {meta['lift_schedule']['kd']:g}{_lift_gains_note(meta)}).
 
 Each episode: the standard domain randomisation (`DRConfig`'s defaults, the same for
@@ -424,11 +420,23 @@ the calibration motions (paper's two phases).
 """
 
 
+def _gains_words(meta: dict) -> str:
+    """The JSON's joint gains: one pair, a pair per joint type (``a2i-train derive --gains
+    KP,KD/KP,KD/KP,KD``), or all twelve in SDK order."""
+    kp, kd = (np.asarray(meta[k], dtype=float) for k in ("kp", "kd"))
+    if not np.ptp(kp) and not np.ptp(kd):
+        return f"kp {kp[0]:g} / kd {kd[0]:g}"
+    if all(np.array_equal(g, np.resize(g[:3], 12)) for g in (kp, kd)):
+        return (f"hip / thigh / calf kp {' / '.join(f'{g:g}' for g in kp[:3])}, "
+                f"kd {' / '.join(f'{g:g}' for g in kd[:3])}")
+    return f"kp {kp.tolist()}, kd {kd.tolist()} (SDK order)"
+
+
 def _gains_note(meta: dict) -> str:
     """Whether the joints' gains are the training's: ``a2i-train derive`` may set others."""
     env = meta.get("train_config", {}).get("env", {})
     kp, kd = env.get("kp"), env.get("kd")
-    if kp is None or (kp == meta["kp"][0] and kd == meta["kd"][0]):
+    if kp is None or (set(meta["kp"]) == {kp} and set(meta["kd"]) == {kd}):
         return ""
     return f"; trained at {kp:g} / {kd:g}"
 

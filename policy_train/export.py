@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from calib.atomic import write_bytes_atomic, write_text_atomic
-from calib.joints import SDK_JOINT_NAMES
+from calib.joints import SDK_JOINT_NAMES, model_to_sdk
 from deploy.lift_schedule import LiftSchedule
 from deploy.observation import OBS_SIZE
 from policy_train.config import TrainConfig
@@ -124,8 +124,9 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
         "decimation": e.decimation,
         "joint_order": list(SDK_JOINT_NAMES),
         "default_pose": fl(default),
-        "kp": [e.kp] * 12,
-        "kd": [e.kd] * 12,
+        # the environment's gains are in model order (one value: every joint)
+        "kp": fl(model_to_sdk(np.broadcast_to(np.asarray(e.kp, dtype=float), (12,)))),
+        "kd": fl(model_to_sdk(np.broadcast_to(np.asarray(e.kd, dtype=float), (12,)))),
         "action": {"size": 12, "scale": e.action_scale, "clip": e.action_clip,
                    "mode": "delta_target"},
         "soft_limits": {"lower": fl(lo), "upper": fl(hi)},
@@ -231,8 +232,9 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     """Write ``<out_stem>.onnx`` (the source's network, byte for byte) and ``<out_stem>.json``
     (the source's, with other deploy gains) for a policy whose checkpoints are gone.
 
-    gains: (kp, kd) of every joint the policy commands (its JSON's ``kp`` / ``kd``, the PD law
-    deploy sends and the evaluation plays); lift_gains: the lifted leg's, as :func:`export_policy`.
+    gains: (kp, kd) of the joints the policy commands (its JSON's ``kp`` / ``kd``, the PD law
+    deploy sends and the evaluation plays), N m/rad and N m s/rad, each one value for every
+    joint or three, (hip, thigh, calf), the same on every leg; lift_gains: the lifted leg's, as :func:`export_policy`.
     The JSON's ``derived_from`` names the source, its commit and the gains it had; its
     evaluation figures are dropped (they were measured with the source's gains).
     ValueError on a source that is not an exported policy or on gains deploy refuses."""
@@ -253,10 +255,10 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                             "kp": meta["kp"], "kd": meta["kd"],
                             "lift_gains": [sched.kp, sched.kd]}
     if gains is not None:
-        kp, kd = (float(g) for g in gains)
-        if not (np.isfinite(kp) and np.isfinite(kd) and kp > 0 and kd >= 0):
-            raise ValueError(f"gains must be kp > 0, kd >= 0, got {kp:g}, {kd:g}")
-        meta["kp"], meta["kd"] = [kp] * 12, [kd] * 12
+        kp, kd = (_per_joint(g, name) for g, name in zip(gains, ("kp", "kd"), strict=True))
+        if not (np.all(np.isfinite(kp + kd)) and np.all(kp > 0) and np.all(kd >= 0)):
+            raise ValueError(f"gains must be kp > 0, kd >= 0, got {kp[:3]}, {kd[:3]}")
+        meta["kp"], meta["kd"] = kp.tolist(), kd.tolist()
     if lift_gains is not None:
         kp, kd = (float(g) for g in lift_gains)
         meta["lift_schedule"] = {**(meta.get("lift_schedule") or {}), "kp": kp, "kd": kd}
@@ -270,6 +272,15 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     write_bytes_atomic(onnx_path, data)
     write_text_atomic(json_path, json.dumps(meta, indent=1) + "\n")
     return onnx_path, json_path
+
+
+def _per_joint(gain, name: str) -> np.ndarray:
+    """(12,) SDK order from one gain or (hip, thigh, calf): the joint types repeat on every
+    leg in both joint orders, so the tiling needs no reordering."""
+    g = np.atleast_1d(np.asarray(gain, dtype=float))
+    if g.shape not in ((1,), (3,)):
+        raise ValueError(f"{name}: give one gain or three (hip, thigh, calf), got {g.shape[0]}")
+    return np.resize(g, 12)
 
 
 def train_state_path(onnx_path: str | Path) -> Path:

@@ -101,14 +101,15 @@ def _ik_leg(m, d, leg: int, target: np.ndarray, qadr: int, dadr: int, site: int)
 
 
 def tripod_pose(model: mujoco.MjModel, leg: int, default_pose: np.ndarray, q_lift: np.ndarray,
-                height: float, margin: float = 0.05, kp: float = 20.0,
+                height: float, margin: float = 0.05, kp: float | np.ndarray = 20.0,
                 kp_lift: float = 40.0, lifted: bool = True) -> TripodPose:
     """Level tripod stance lifting model leg ``leg`` (0..3), see the module docstring.
 
     model: the training model (free base ``base`` body, foot sites ``<leg>_foot``, hinge joints
     after the free joint). default_pose: (12,) rad, the four-leg stance that fixes the stance
     feet. q_lift: (3,) rad, the lifted leg's joints. height: base height, m. margin: m.
-    kp, kp_lift: N m/rad of the stance motors and of the lifted leg's motors.
+    kp, kp_lift: N m/rad of the stance motors (one, or (12,) in model order) and of the lifted
+    leg's motors.
     lifted: False gives the stance at the end of the schedule's shift phase instead: the same
     support (the body over the three other feet) with the leg's foot still on the floor but
     unloaded (its target then holds only the leg's own weight, with ``kp``).

@@ -350,9 +350,6 @@ def test_derive_sets_the_deploy_gains_and_the_evaluation_plays_them(exported, tm
                     log=lambda s: None)
     assert "joint gains (kp 23 / kd 0.575; trained at 20 / 0.5)" in " ".join(
         out.read_text().split())
-    meta["kp"][0] = 30.0
-    with pytest.raises(ValueError, match="differ between joints"):
-        evaluation_env(meta, ("FL",), 1, seed=1)
     # a source deploy would not read is refused, and nothing is written
     del meta["kp"]
     (tmp_path / "bad.json").write_text(json.dumps(meta))
@@ -362,9 +359,41 @@ def test_derive_sets_the_deploy_gains_and_the_evaluation_plays_them(exported, tm
     assert not (tmp_path / "h.json").exists()
 
 
+def test_derive_sets_gains_per_joint_type_and_the_evaluation_plays_each_joints(exported,
+                                                                            tmp_path):
+    """`derive --gains 29,0.725/29,0.725/23,0.575`: hips, thighs and calves of every leg get
+    their own gains; the evaluation's environment drives each joint with its own (the JSON's
+    SDK order put into the model's), and the page names them."""
+    from calib.joints import sdk_to_model
+    from policy_train.cli import main
+    from policy_train.evaluate import evaluate_policy, evaluation_env
+
+    d, _ = exported
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"),
+                 "--gains", "29,0.725/29,0.725/23,0.575"]) == 0
+    meta = json.loads((tmp_path / "g.json").read_text())
+    assert meta["kp"] == [29.0, 29.0, 23.0] * 4 and meta["kd"] == [0.725, 0.725, 0.575] * 4
+    # twelve different gains: each reaches its own joint's actuator
+    meta["kp"] = [20.0 + i for i in range(12)]
+    env, _ = evaluation_env(meta, ("FL",), 2, seed=1, nominal=True)
+    want = sdk_to_model(np.asarray(meta["kp"]))
+    np.testing.assert_array_equal(env._kp, want)
+    env.step(np.zeros((env.N, 12), dtype=np.float32))
+    stance = np.arange(3, 12)  # model order FL, FR, RL, RR: the lifted FL may be on its schedule
+    np.testing.assert_allclose(env.gainprm[:, stance, 0], np.broadcast_to(want[stance], (2, 9)))
+    np.testing.assert_allclose(env.biasprm[:, stance, 2], np.broadcast_to(
+        -sdk_to_model(np.asarray(meta["kd"]))[stance], (2, 9)))
+    out = tmp_path / "policy.md"
+    evaluate_policy(tmp_path / "g.onnx", episodes=1, legs=("FL",), results_path=out,
+                    log=lambda s: None)
+    assert ("joint gains (hip / thigh / calf kp 29 / 29 / 23, kd 0.725 / 0.725 / 0.575; "
+            "trained at 20 / 0.5)") in " ".join(out.read_text().split())
+
+
 @pytest.mark.parametrize(("extra", "hint"), [
     ([], "--gains"), (["--gains", "0,0.5"], "--gains"), (["--gains", "20"], "--gains"),
-    (["--gains", "nan,1"], "--gains"), (["--lift-gains", "0,2"], "--lift-gains")])
+    (["--gains", "nan,1"], "--gains"), (["--gains", "29,0.7/23,0.5"], "--gains"),
+    (["--gains", "29,0.7/29,0.7/0,0.5"], "--gains"), (["--lift-gains", "0,2"], "--lift-gains")])
 def test_bad_derive_exits_with_one_line(extra, hint, exported, tmp_path, capsys):
     from policy_train.cli import main
 
