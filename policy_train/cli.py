@@ -364,7 +364,7 @@ def _joint_gains(text: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
     if len(parts) not in (1, 3):
         raise argparse.ArgumentTypeError(
             f"{text!r}: give KP,KD or HIP_KP,HIP_KD/THIGH_KP,THIGH_KD/CALF_KP,CALF_KD")
-    pairs = [_kp_kd(p, "23,0.575 or 29,0.725/29,0.725/23,0.575") for p in parts]
+    pairs = [_kp_kd(p, "23,0.575 or 29,6/29,6/23,0.8") for p in parts]
     for kp, kd in pairs:
         if not (math.isfinite(kp) and math.isfinite(kd) and kp > 0 and kd >= 0):
             raise argparse.ArgumentTypeError(f"{text!r}: kp must be > 0 and kd >= 0")

@@ -234,7 +234,8 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
 
     gains: (kp, kd) of the joints the policy commands (its JSON's ``kp`` / ``kd``, the PD law
     deploy sends and the evaluation plays), N m/rad and N m s/rad, each one value for every
-    joint or three, (hip, thigh, calf), the same on every leg; lift_gains: the lifted leg's, as :func:`export_policy`.
+    joint or three, (hip, thigh, calf), the same on every leg; lift_gains: the lifted leg's,
+    as :func:`export_policy`.
     The JSON's ``derived_from`` names the source, its commit and the gains it had; its
     evaluation figures are dropped (they were measured with the source's gains).
     ValueError on a source that is not an exported policy or on gains deploy refuses."""
