@@ -534,7 +534,7 @@ def main(argv: list[str] | None = None) -> int:
                        "(the network unchanged)")
     g.add_argument("onnx", help="the exported policy (its .json beside it)")
     g.add_argument("--out", required=True, help="path stem, e.g. policies/tripod_v2")
-    g.add_argument("--gains", type=_joint_gains, default=None, metavar="KP,KD",
+    g.add_argument("--gains", type=_joint_gains, default=None, metavar="KP,KD[/KP,KD/KP,KD]",
                    help="the PD gains (N m/rad, N m s/rad) the policy commands: KP,KD for every "
                         "joint, or HIP_KP,HIP_KD/THIGH_KP,THIGH_KD/CALF_KP,CALF_KD on every leg")
     g.add_argument("--lift-gains", type=_gains, default=None, metavar="KP,KD",
