@@ -166,6 +166,19 @@ def test_hand_back_restarts_the_policy_target_from_the_leg(meta_paths):
     assert cmd.obs[-1] == 0.0  # lift_command back to none
 
 
+def test_the_stand_takes_over_the_tick_the_foot_is_down(meta_paths):
+    # the policy alone with the lift command cleared spun the body after FR lifts (v17-v20)
+    rig = Rig(meta_paths[0], legs=("FL",))
+    rig.run_until(State.LOWER)
+    idx = sdk_indices("FL")
+    free = 0  # LOWER ticks whose lifted leg the policy drove, off the schedule
+    while rig.s.state is State.LOWER:
+        cmd = rig.tick()
+        free += rig.s.phase == "done" and np.allclose(cmd.kp[idx], rig.meta.kp[idx])
+    assert rig.s.state is State.STAND and rig.transitions[-1][2] == "foot down"
+    assert free <= 1
+
+
 @pytest.mark.parametrize("state", [State.PASSIVE, State.STAND, State.TRIPOD, State.CALIBRATE,
                                    State.LOWER, State.SOLVE])
 def test_l2_b_damps_within_the_tick_from_any_state(meta_paths, state):
