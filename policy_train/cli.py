@@ -4,7 +4,8 @@
                    | --from-policy policies/NAME.onnx [--init-std S] [--critic-warmup N]]
                    [--new-rewards]
                    [--lift-leg-weights FL,FR,RL,RR] [--[no-]mirror-augmentation] [--run-dir D]
-                   [--dr FIELD=VALUE ...] [--export policies/NAME]
+                   [--dr FIELD=VALUE ...] [--reward TERM=WEIGHT ...]
+                   [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD] [--export policies/NAME]
   a2i-train export CHECKPOINT [CHECKPOINT ...] --out policies/NAME [--legs RL,RR]
                    [--mirror-legs FR,RR]   (several checkpoints of one run: weights averaged)
   a2i-train eval policies/NAME.onnx [--episodes 100] [--legs FL,FR,RL,RR] [--no-write]
@@ -86,6 +87,12 @@ def _tripod(a) -> int:
     if a.mirror_augmentation is not None:
         cfg.ppo.mirror_augmentation = a.mirror_augmentation
     cfg.env.dr = cfg.env.dr.with_settings(dict(a.dr))
+    cfg.env.rewards = cfg.env.rewards.with_settings(dict(a.reward))
+    if a.gains is not None:  # one value for every joint, or (hip, thigh, calf) on each leg
+        cfg.env.kp, cfg.env.kd = (g[0] if len(g) == 1 else tuple(float(x) for x in g * 4)
+                                  for g in a.gains)
+    if a.lift_gains is not None:
+        cfg.env.lift_kp, cfg.env.lift_kd = a.lift_gains
     if a.calf_margin is not None:
         cfg.env.calf_upper_margin = a.calf_margin
     if a.calf_margin_ramp is not None:
@@ -397,6 +404,26 @@ def _dr_setting(text: str) -> tuple[str, object]:
     return field, parts if isinstance(default, tuple) else parts[0]
 
 
+def _reward_setting(text: str) -> tuple[str, float]:
+    """argparse type: ``TERM=WEIGHT`` for a ``RewardConfig`` field (``ang_vel_xy=-6``)."""
+    from dataclasses import fields
+
+    from policy_train.config import RewardConfig
+
+    known = [f.name for f in fields(RewardConfig)]
+    term, sep, value = text.partition("=")
+    if not sep or term not in known:
+        raise argparse.ArgumentTypeError(f"{text!r}: give TERM=WEIGHT, TERM one of "
+                                          f"{', '.join(known)}")
+    try:
+        w = float(value)
+    except ValueError:
+        w = math.nan
+    if not math.isfinite(w):
+        raise argparse.ArgumentTypeError(f"{text!r}: the weight must be a finite number")
+    return term, w
+
+
 def _weights(text: str) -> tuple[float, ...]:
     """argparse type: four non-negative lift weights, FL,FR,RL,RR, not all zero."""
     try:
@@ -442,6 +469,17 @@ def main(argv: list[str] | None = None) -> int:
                    default=None, metavar="LR",
                    help="PPO's (starting) learning rate; the adaptive schedule moves it to keep "
                         "the KL near its target. On --resume it replaces the checkpoint's")
+    t.add_argument("--reward", type=_reward_setting, action="append", default=[],
+                   metavar="TERM=WEIGHT", help="a reward weight (or sigma, target) of "
+                   "RewardConfig (repeatable), e.g. --reward ang_vel_xy=-6; on --resume or "
+                   "--from-policy it replaces the run's own")
+    t.add_argument("--gains", type=_joint_gains, default=None, metavar="KP,KD[/KP,KD/KP,KD]",
+                   help="the PD gains (N m/rad, N m s/rad) the policy commands, as derive "
+                        "--gains: KP,KD for every joint or hip/thigh/calf; on --resume or "
+                        "--from-policy they replace the run's own (kp 20, kd 0.5)")
+    t.add_argument("--lift-gains", type=_gains, default=None, metavar="KP,KD",
+                   help="the lifted leg's PD gains in training (default 40,1; deploy's JSON "
+                        "may name others, a2i-train export --lift-gains)")
     t.add_argument("--threads", type=_positive, default=None,
                    help="threads of the simulation and of the update (default: all CPUs); "
                         "1 each for two runs side by side on two cores")

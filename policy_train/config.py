@@ -47,6 +47,14 @@ class RewardConfig:
     support: float = -20.0        # m the COM lies short of support_margin_m inside the triangle
     support_margin_m: float = 0.03
 
+    def with_settings(self, settings: dict) -> RewardConfig:
+        """A copy with the named weights set (``a2i-train tripod --reward``). ValueError on an
+        unknown name."""
+        unknown = [k for k in settings if k not in self.__dataclass_fields__]
+        if unknown:
+            raise ValueError(f"unknown reward term(s) {', '.join(map(repr, unknown))}")
+        return replace(self, **{k: float(v) for k, v in settings.items()})
+
     @classmethod
     def paper(cls) -> RewardConfig:
         """Paper Table III only (v1): the terms added for v2 switched off."""

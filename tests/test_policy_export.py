@@ -430,6 +430,10 @@ def test_bad_lift_gains_exit_2_with_one_line(value, exported, tmp_path, capsys):
     ("--threads", "0", "--threads"), ("--critic-warmup", "-1", "--critic-warmup"),
     ("--init-std", "0", "--init-std"), ("--learning-rate", "0", "--learning-rate"),
     ("--calf-margin", "-0.5", "--calf-margin"),
+    *[("--reward", v, "--reward") for v in ("ang_vel_xy", "nope=1", "ang_vel_xy=x",
+                                             "ang_vel_xy=nan")],
+    *[("--gains", v, "--gains") for v in ("29", "29,8/29,8", "0,1", "29,-1")],
+    ("--lift-gains", "80", "--lift-gains"),
     *[("--calf-margin-ramp", v, "--calf-margin-ramp") for v in ("-0.1", "-0.1,0", "x,3",
                                                                  "0.6,3", "-0.1,2.5")]])
 def test_bad_tripod_option_exits_2_with_one_line(option, value, hint, capsys):
@@ -522,6 +526,34 @@ def test_dr_settings_change_a_resumed_runs_randomisation(exported):
     before = torch.load(d / "run" / "model_2.pt", weights_only=False,
                         map_location="cpu")["train_config"]["env"]["dr"]
     assert tuple(dr["friction"]) == tuple(before["friction"])  # the rest is the run's own
+
+
+def test_reward_weights_and_gains_replace_a_resumed_runs_own(exported):
+    """``--reward TERM=WEIGHT``, ``--gains`` and ``--lift-gains`` set the run's rewards and PD
+    gains over the checkpoint's; its checkpoints carry them and the exported JSON commands
+    the joints with the new gains (SDK order, hip / thigh / calf on every leg)."""
+    import torch
+
+    d, _ = exported
+    out = d / "stiff"
+    cmd = [sys.executable, "-m", "policy_train.cli", "tripod", "--resume",
+           str(d / "run" / "model_2.pt"), "--iterations", "1", "--num-envs", "8",
+           "--plans-per-leg", "1", "--steps-per-env", "8", "--run-dir", str(out),
+           "--reward", "ang_vel_xy=-8", "--reward", "track_sigma=0.1",
+           "--gains", "29,8/29,8/26,1.2", "--lift-gains", "80,2", "--threads", "1",
+           "--export", str(out / "pol")]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    env = torch.load(out / "model_3.pt", weights_only=False, map_location="cpu")[
+        "train_config"]["env"]
+    before = torch.load(d / "run" / "model_2.pt", weights_only=False,
+                        map_location="cpu")["train_config"]["env"]
+    assert env["rewards"]["ang_vel_xy"] == -8.0 and env["rewards"]["track_sigma"] == 0.1
+    assert env["rewards"]["slip"] == before["rewards"]["slip"]  # the rest is the run's own
+    assert tuple(env["kp"]) == (29.0, 29.0, 26.0) * 4 and tuple(env["kd"]) == (8.0, 8.0, 1.2) * 4
+    assert (env["lift_kp"], env["lift_kd"]) == (80.0, 2.0)
+    meta = json.loads((out / "pol.json").read_text())
+    assert meta["kp"] == [29.0, 29.0, 26.0] * 4 and meta["kd"] == [8.0, 8.0, 1.2] * 4
 
 
 def test_calf_margin_ramp_raises_the_clamp_each_iteration_and_resume_goes_on(exported,
