@@ -16,7 +16,7 @@
                                    (the calibration re-run on sim.go2 under perturbations)
   a2i-train compare A.json B.json  (two transfer runs on the same draws, episode by episode)
   a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD]
-                                   (the same network with other deploy gains)
+                   [--t-r S]       (the same network with other deploy gains or excitation speed)
   a2i-train pack OUTDIR            (compiled model, plan pool and leg dynamics for a machine
                                     without the URDF)
 
@@ -197,9 +197,9 @@ def _export(a) -> int:
 def _derive(a) -> int:
     from policy_train.export import derive_policy
 
-    if a.gains is None and a.lift_gains is None:
-        raise SystemExit("a2i-train derive: give --gains and/or --lift-gains")
-    onnx_path, json_path = derive_policy(a.onnx, a.out, a.gains, a.lift_gains)
+    if a.gains is None and a.lift_gains is None and a.t_r is None:
+        raise SystemExit("a2i-train derive: give --gains, --lift-gains and/or --t-r")
+    onnx_path, json_path = derive_policy(a.onnx, a.out, a.gains, a.lift_gains, a.t_r)
     print(f"wrote {onnx_path} and {json_path} (the network of {a.onnx})")
     return 0
 
@@ -577,6 +577,9 @@ def main(argv: list[str] | None = None) -> int:
                         "joint, or HIP_KP,HIP_KD/THIGH_KP,THIGH_KD/CALF_KP,CALF_KD on every leg")
     g.add_argument("--lift-gains", type=_gains, default=None, metavar="KP,KD",
                    help="the lifted leg's gains, as export --lift-gains")
+    g.add_argument("--t-r", type=_number(0.05, 5.0, "must be in [0.05, 5) s"), default=None,
+                   metavar="S", help="the excitation's time constant t_r (s), inside the range "
+                   "the policy trained against; slower motions shake the tripod less")
     v = sub.add_parser("eval", help="evaluate an exported policy (onnxruntime)")
     v.add_argument("onnx")
     v.add_argument("--episodes", type=int, default=100)

@@ -228,15 +228,18 @@ def export_policy(checkpoint, out_stem: str | Path,
 
 
 def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
-                  lift_gains=None) -> tuple[Path, Path]:
+                  lift_gains=None, t_r=None) -> tuple[Path, Path]:
     """Write ``<out_stem>.onnx`` (the source's network, byte for byte) and ``<out_stem>.json``
-    (the source's, with other deploy gains) for a policy whose checkpoints are gone.
+    (the source's, with other deploy gains or excitation speed) for a policy whose
+    checkpoints are gone.
 
     gains: (kp, kd) of the joints the policy commands (its JSON's ``kp`` / ``kd``, the PD law
     deploy sends and the evaluation plays), N m/rad and N m s/rad, each one value for every
     joint or three, (hip, thigh, calf), the same on every leg; lift_gains: the lifted leg's,
-    as :func:`export_policy`.
-    The JSON's ``derived_from`` names the source, its commit and the gains it had; its
+    as :func:`export_policy`; t_r: the excitation's time constant (s, the JSON's
+    ``lift_schedule``), inside the range the policy was trained against (its
+    ``train_config``'s ``t_r_range``: it never balanced against other speeds).
+    The JSON's ``derived_from`` names the source, its commit, the gains and t_r it had; its
     evaluation figures are dropped (they were measured with the source's gains).
     ValueError on a source that is not an exported policy or on gains deploy refuses."""
     from deploy.policy import PolicyMeta
@@ -254,7 +257,7 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     name = out_stem.name.removesuffix(".onnx")
     meta["derived_from"] = {"policy": src.name, "commit": meta.get("commit"),
                             "kp": meta["kp"], "kd": meta["kd"],
-                            "lift_gains": [sched.kp, sched.kd]}
+                            "lift_gains": [sched.kp, sched.kd], "t_r": sched.t_r}
     if gains is not None:
         kp, kd = (_per_joint(g, name) for g, name in zip(gains, ("kp", "kd"), strict=True))
         if not (np.all(np.isfinite(kp + kd)) and np.all(kp > 0) and np.all(kd >= 0)):
@@ -264,6 +267,12 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
         kp, kd = (float(g) for g in lift_gains)
         meta["lift_schedule"] = {**(meta.get("lift_schedule") or {}), "kp": kp, "kd": kd}
         LiftSchedule.from_metadata(meta["lift_schedule"])  # deploy's rule for the gains
+    if t_r is not None:
+        lo, hi = meta["train_config"]["env"].get("t_r_range", (sched.t_r, sched.t_r))
+        if not (np.isfinite(t_r) and lo <= t_r <= hi):
+            raise ValueError(f"t_r {t_r} s is outside the {lo}-{hi} s the policy was trained "
+                             "against")
+        meta["lift_schedule"] = {**meta["lift_schedule"], "t_r": float(t_r)}
     meta.update(name=name, onnx=f"{name}.onnx", commit=git_commit(), evaluation={},
                 created_utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
     meta.pop("evaluation_nominal", None)

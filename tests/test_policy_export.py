@@ -390,10 +390,40 @@ def test_derive_sets_gains_per_joint_type_and_the_evaluation_plays_each_joints(e
             "trained at 20 / 0.5)") in " ".join(out.read_text().split())
 
 
+def test_derive_sets_the_excitation_speed_within_the_trained_range(exported, tmp_path, capsys):
+    """`derive --t-r 0.6`: the JSON's lift schedule plays the excitation at that time constant
+    (the evaluation's plans last longer), the source's t_r named in
+    ``derived_from``; a t_r outside the training's ``t_r_range`` is refused, nothing written."""
+    from policy_train.cli import main
+    from policy_train.evaluate import evaluation_env
+
+    d, _ = exported
+    src = json.loads((d / "pol.json").read_text())
+    lo, hi = src["train_config"]["env"]["t_r_range"]
+    assert lo < 0.6 < hi and src["lift_schedule"]["t_r"] < 0.6
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"),
+                 "--t-r", "0.6"]) == 0
+    meta = json.loads((tmp_path / "g.json").read_text())
+    assert meta["lift_schedule"] == {**src["lift_schedule"], "t_r": 0.6}
+    assert meta["derived_from"]["t_r"] == src["lift_schedule"]["t_r"]
+    assert (meta["kp"], meta["kd"]) == (src["kp"], src["kd"])
+    slow, _ = evaluation_env(meta, ("FL",), 1, seed=1, nominal=True)
+    fast, _ = evaluation_env(src, ("FL",), 1, seed=1, nominal=True)
+    # the periods stretch with t_r; the ramps into and out of them do not
+    ratio = slow.lift_dur[0, 3] / fast.lift_dur[0, 3]
+    assert 1.0 + 0.8 * (0.6 / src["lift_schedule"]["t_r"] - 1.0) < ratio < 0.6 / src[
+        "lift_schedule"]["t_r"]
+    capsys.readouterr()
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "h"),
+                 "--t-r", str(hi + 0.05)]) == 2
+    assert "outside" in capsys.readouterr().err and not (tmp_path / "h.json").exists()
+
+
 @pytest.mark.parametrize(("extra", "hint"), [
     ([], "--gains"), (["--gains", "0,0.5"], "--gains"), (["--gains", "20"], "--gains"),
     (["--gains", "nan,1"], "--gains"), (["--gains", "29,0.7/23,0.5"], "--gains"),
-    (["--gains", "29,0.7/29,0.7/0,0.5"], "--gains"), (["--lift-gains", "0,2"], "--lift-gains")])
+    (["--gains", "29,0.7/29,0.7/0,0.5"], "--gains"), (["--lift-gains", "0,2"], "--lift-gains"),
+    (["--t-r", "0"], "--t-r"), (["--t-r", "x"], "--t-r")])
 def test_bad_derive_exits_with_one_line(extra, hint, exported, tmp_path, capsys):
     from policy_train.cli import main
 
