@@ -419,8 +419,9 @@ def _reward_setting(text: str) -> tuple[str, float]:
         w = float(value)
     except ValueError:
         w = math.nan
-    if not math.isfinite(w):
-        raise argparse.ArgumentTypeError(f"{text!r}: the weight must be a finite number")
+    if not math.isfinite(w) or (term.endswith("_sigma") and w <= 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: the weight must be a finite number"
+                                          + (" > 0" if term.endswith("_sigma") else ""))
     return term, w
 
 

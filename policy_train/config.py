@@ -53,6 +53,9 @@ class RewardConfig:
         unknown = [k for k in settings if k not in self.__dataclass_fields__]
         if unknown:
             raise ValueError(f"unknown reward term(s) {', '.join(map(repr, unknown))}")
+        bad = [k for k, v in settings.items() if k.endswith("_sigma") and not float(v) > 0]
+        if bad:  # the exp(-err^2 / sigma) terms
+            raise ValueError(f"{', '.join(bad)} must be > 0")
         return replace(self, **{k: float(v) for k, v in settings.items()})
 
     @classmethod

@@ -461,7 +461,7 @@ def test_bad_lift_gains_exit_2_with_one_line(value, exported, tmp_path, capsys):
     ("--init-std", "0", "--init-std"), ("--learning-rate", "0", "--learning-rate"),
     ("--calf-margin", "-0.5", "--calf-margin"),
     *[("--reward", v, "--reward") for v in ("ang_vel_xy", "nope=1", "ang_vel_xy=x",
-                                             "ang_vel_xy=nan")],
+                                             "ang_vel_xy=nan", "track_sigma=0")],
     *[("--gains", v, "--gains") for v in ("29", "29,8/29,8", "0,1", "29,-1")],
     ("--lift-gains", "80", "--lift-gains"),
     *[("--calf-margin-ramp", v, "--calf-margin-ramp") for v in ("-0.1", "-0.1,0", "x,3",
