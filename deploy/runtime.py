@@ -383,20 +383,26 @@ class DeployRunner:
             self.transport = None
 
     # ------------------------------------------------------------------ the loop
+    def _record_lowstate(self, s):
+        """Decode and record one received LowState; None (logged) if it does not decode."""
+        try:
+            v = decode_lowstate(s.payload)
+        except ValueError as e:
+            log.warning("bad LowState ignored: %s", e)
+            return None
+        self.recorder.record_lowstate(s.t_ns, s.payload, v.q, v.dq, v.tau_est, v.quaternion,
+                                      v.gyroscope, v.accelerometer, v.tick)
+        return v
+
     def _ingest(self, samples) -> tuple[bool, set[str]]:
         """Record every LowState; the newest becomes ``latest``. Returns (fresh, combos)."""
         combos: set[str] = set()
         fresh = False
-        rec = self.recorder
         for s in samples:
-            try:
-                v = decode_lowstate(s.payload)
-            except ValueError as e:
-                log.warning("bad LowState ignored: %s", e)
+            v = self._record_lowstate(s)
+            if v is None:
                 continue
             tick = v.tick
-            rec.record_lowstate(s.t_ns, s.payload, v.q, v.dq, v.tau_est, v.quaternion,
-                                v.gyroscope, v.accelerometer, tick)
             if self.last_tick_ms is not None and tick == self.last_tick_ms:
                 continue  # a repeat (the lockstep mock repeats its last state when idle)
             ev = self._joy.update(JoystickState.from_wireless_remote(v.wireless_remote))
@@ -404,6 +410,24 @@ class DeployRunner:
             self.latest, self.latest_ns, self.last_tick_ms = v, s.t_ns, tick
             fresh = True
         return fresh, combos
+
+    def _record_late_lowstates(self, lockstep: bool, quiet_s: float = 0.08,
+                               max_s: float = 0.5) -> None:
+        """Record the LowStates that arrive after the last tick: the robot's answers to its
+        frames, which no tick reads. A lockstep robot answers each frame and then falls quiet
+        (its idle repeat comes after 0.1 s), so wait for ``quiet_s`` without a state (at most
+        ``max_s``); a realtime one never falls quiet: take what has arrived."""
+        t0 = last = time.monotonic()
+        while True:
+            samples = self.ls_queue.drain()
+            now = time.monotonic()
+            for s in samples:
+                self._record_lowstate(s)
+            if samples:
+                last = now
+            if not lockstep or now - last >= quiet_s or now - t0 >= max_s:
+                return
+            time.sleep(0.002)
 
     def _wait_lockstep(self, expected_tick: int | None) -> list:
         """Samples up to (and including) the LowState of ``expected_tick`` (or a timeout)."""
@@ -510,6 +534,7 @@ class DeployRunner:
             except BaseException as e:
                 self._emergency_damp(f"deploy error: {type(e).__name__}: {e}")
                 raise
+            self._record_late_lowstates(c.clock == "lockstep")
         finally:
             for job in self._jobs:
                 job.join(timeout=60.0)
