@@ -41,7 +41,7 @@ from deploy.solve import SolveJob, SolveWorker, WindowMark
 from deploy.supervisor import SafetySupervisor, SupervisorConfig
 from deploy.timebase import make_time_base
 from deploy.timing import DeadlineTicker, TickStats, TimingSummary
-from hw.go2_msgs import LowCmdBuffer, decode_lowstate
+from hw.go2_msgs import LowCmdBuffer, LowStateView, decode_lowstate
 from hw.imu_serial import SerialImuReader
 from hw.joystick import Joystick, JoystickState
 from hw.recorder import Recorder, RecorderConfig
@@ -383,7 +383,7 @@ class DeployRunner:
             self.transport = None
 
     # ------------------------------------------------------------------ the loop
-    def _record_lowstate(self, s):
+    def _record_lowstate(self, s) -> LowStateView | None:
         """Decode and record one received LowState; None (logged) if it does not decode."""
         try:
             v = decode_lowstate(s.payload)

@@ -83,8 +83,9 @@ class SessionConfig:
     stand_timeout_s: float = 3.0
     track_tolerance: float = 0.35
     # s of the policy alone, with no lift command, once the foot is down. Zero: after an FR
-    # lift the v17-v20 graphs then spin the body (randomised, 45-47 of 50 past 0.8 rad/s
-    # within 0.5 s; after FL 1-3), and the stand that followed tipped the mock past 30 deg.
+    # lift the graphs of v17's network (v17-v21) spin the body (randomised, 45-47 of 50 past
+    # 0.8 rad/s within 0.5 s; after FL 1-3), and the stand that followed tipped the mock past
+    # 30 deg.
     # Likely why: the graph plays FR's lift as FL's mirrored and stops mirroring with the
     # command (JSON mirrored_legs), leaving its own network a pose it did not make
     lower_settle_s: float = 0.0

@@ -479,8 +479,9 @@ def main(argv: list[str] | None = None) -> int:
                         "--gains: KP,KD for every joint or hip/thigh/calf; on --resume or "
                         "--from-policy they replace the run's own (kp 20, kd 0.5)")
     t.add_argument("--lift-gains", type=_gains, default=None, metavar="KP,KD",
-                   help="the lifted leg's PD gains in training (default 40,1; deploy's JSON "
-                        "may name others, a2i-train export --lift-gains)")
+                   help="the lifted leg's PD gains in training (a new run's 40,1; on --resume "
+                        "or --from-policy they replace the run's own; deploy's JSON may name "
+                        "others, a2i-train export --lift-gains)")
     t.add_argument("--threads", type=_positive, default=None,
                    help="threads of the simulation and of the update (default: all CPUs); "
                         "1 each for two runs side by side on two cores")
