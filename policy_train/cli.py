@@ -17,6 +17,9 @@
   a2i-train compare A.json B.json  (two transfer runs on the same draws, episode by episode)
   a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD]
                    [--t-r S]       (the same network with other deploy gains or excitation speed)
+  a2i-train refine policies/NAME.onnx --out policies/OTHER [--generations 40] [--leg FL]
+                   [--pairs 4] [--episodes 24] [--seed 1000] [--state F] [--resume]
+                                   (a linear residual on the body's rate and tilt, by ES)
   a2i-train pack OUTDIR            (compiled model, plan pool and leg dynamics for a machine
                                     without the URDF)
 
@@ -204,6 +207,23 @@ def _derive(a) -> int:
     return 0
 
 
+def _refine(a) -> int:
+    from policy_train.refine import RefineConfig, refine
+
+    state = Path(a.state or Path(a.out).with_name(Path(a.out).name.removesuffix(".onnx")
+                                                  + ".refine.json"))
+    if a.resume_state and not state.is_file():
+        raise ValueError(f"--resume: no state {state}")
+    cfg = RefineConfig(leg=a.leg, pairs=a.pairs, episodes=a.episodes, step=a.step,
+                       seed=a.seed)
+    print(f"refine: {a.onnx}, {a.generations} generations of {2 * cfg.pairs + 1} candidates x "
+          f"{cfg.episodes} episodes per leg, state {state}", flush=True)
+    onnx_path, json_path = refine(a.onnx, a.out, a.generations, cfg, state, resume=a.resume_state,
+                                  log=lambda s: print(s, flush=True))
+    print(f"wrote {onnx_path} and {json_path}; evaluate it with a2i-train eval {onnx_path}")
+    return 0
+
+
 def _transfer(a) -> int:
     from policy_train.transfer import SCENARIOS, summarise, timed_run, write_results
 
@@ -331,6 +351,14 @@ def _leg_list(text: str) -> tuple[str, ...]:
         return tuple(check_leg(g.strip()) for g in text.split(","))
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _leg(text: str) -> str:
+    """argparse type: one leg, e.g. ``FL``."""
+    legs = _leg_list(text)
+    if len(legs) != 1:
+        raise argparse.ArgumentTypeError(f"one leg, got {text!r}")
+    return legs[0]
 
 
 def _kp_kd(text: str, example: str) -> tuple[float, float]:
@@ -582,6 +610,25 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--t-r", type=_number(0.05, 5.0, "must be in [0.05, 5) s"), default=None,
                    metavar="S", help="the excitation's time constant t_r (s), inside the range "
                    "the policy trained against; slower motions shake the tripod less")
+    r = sub.add_parser("refine", help="add a linear residual on the body's rate and tilt to an "
+                       "exported policy's lifts of one leg, tuned by evolution strategies")
+    r.add_argument("onnx", help="the exported policy (its .json beside it)")
+    r.add_argument("--out", required=True, help="path stem, e.g. policies/tripod_v2")
+    r.add_argument("--generations", type=_count, default=40,
+                   help="ES generations (each about a minute on 2 cores at the defaults)")
+    r.add_argument("--leg", type=_leg, default="FL",
+                   help="the lift refined; legs the policy mirrors onto it follow (default FL)")
+    r.add_argument("--pairs", type=_positive, default=4, help="antithetic pairs per generation")
+    r.add_argument("--episodes", type=_positive, default=24,
+                   help="episodes per leg and candidate, the same draws for every candidate")
+    r.add_argument("--step", type=_number(1e-3, 10.0, "must be in [0.001, 10)"), default=0.3,
+                   help="the update's length, as a fraction of one perturbation's")
+    r.add_argument("--seed", type=int, default=1000,
+                   help="directions and draws: generation g plays evaluation seed SEED + g")
+    r.add_argument("--state", default=None,
+                   help="the ES state, saved each generation (default <out>.refine.json)")
+    r.add_argument("--resume", action="store_true", dest="resume_state",
+                   help="go on from --state (its source, settings and residual)")
     v = sub.add_parser("eval", help="evaluate an exported policy (onnxruntime)")
     v.add_argument("onnx")
     v.add_argument("--episodes", type=int, default=100)
@@ -642,10 +689,11 @@ def main(argv: list[str] | None = None) -> int:
         from policy_train.transfer import SCENARIOS
 
         a.scenarios = tuple(SCENARIOS)
-    if a.cmd in ("eval", "transfer", "derive") and a.onnx and not Path(a.onnx).with_suffix(".json").is_file():
+    if a.cmd in ("eval", "transfer", "derive", "refine") and a.onnx and not Path(a.onnx).with_suffix(".json").is_file():
         p.error(f"{Path(a.onnx).with_suffix('.json')}: no policy metadata beside the ONNX file")
     try:
         return {"tripod": _tripod, "distill": _distill, "export": _export, "derive": _derive, "eval": _eval,
+                "refine": _refine,
                 "transfer": _transfer,
                 "compare": _compare, "pack": _pack}[a.cmd](a)
     except (OSError, ValueError) as e:

@@ -276,6 +276,16 @@ def _training(meta: dict) -> str:
     return f"{meta.get('iterations')} PPO iterations"
 
 
+def _refined(meta: dict) -> str:
+    """How ``a2i-train refine`` changed the network's actions, if it did."""
+    r = meta.get("refined_from")
+    if not r:
+        return ""
+    return (f"; then {len(r['generations'])} generations of `a2i-train refine` on "
+            f"`{r['policy']}`: a linear residual on the body's rate and tilt for the "
+            f"{' and '.join(r['legs'])} lifts, tuned by evolution strategies")
+
+
 def _averaged(meta: dict) -> str:
     its = meta.get("averaged_iterations")
     return f"; the weight average of iterations {', '.join(map(str, its))}" if its else ""
@@ -385,7 +395,7 @@ def _report(r: dict, meta: dict, table: str) -> str:
     return f"""# Tripod policy evaluation
 
 Policy `{r['policy']}` (commit `{meta.get('commit')}`, seed {meta.get('seed')},
-{_training(meta)}{_averaged(meta)}). Produced by
+{_training(meta)}{_averaged(meta)}{_refined(meta)}). Produced by
 `a2i-train eval {r.get('path', 'policies/' + r['policy'])} --episodes {r['episodes_per_leg']}` (seed {r['seed']}):
 the ONNX through onnxruntime, the JSON's observation terms, action, joint gains ({_gains_words(meta)}{_gains_note(meta)}) and lift schedule (the
 lifted leg at kp {meta['lift_schedule']['kp']:g} / kd {meta['lift_schedule']['kd']:g}{_lift_gains_note(meta)}).

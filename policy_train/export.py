@@ -153,9 +153,6 @@ def export_policy(checkpoint, out_stem: str | Path,
     ``mirrored_legs``); None on a distillation checkpoint: its teacher's. lift_gains: (kp, kd)
     of the lifted leg in the JSON's ``lift_schedule`` (None: the training's); the policy never
     commands that leg, so its gains are a deploy setting the evaluation then measures."""
-    import onnx
-    import onnxruntime as ort
-
     from policy_train.symmetry import MirroredLegsActor, mirror_source
 
     paths = [checkpoint] if isinstance(checkpoint, (str, Path)) else list(checkpoint)
@@ -187,28 +184,7 @@ def export_policy(checkpoint, out_stem: str | Path,
     onnx_path = out_stem.with_name(name + ".onnx")
     json_path = out_stem.with_name(name + ".json")
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = onnx_path.with_name(f".{name}.export.onnx")
-    n_in = OBS_SIZE * cfg.env.obs_history
-    dummy = torch.zeros(2, n_in)
-    torch.onnx.export(actor, (dummy,), str(tmp), input_names=["obs"], output_names=["actions"],
-                      dynamic_shapes={"obs": {0: torch.export.Dim("batch", min=1, max=65536)}},
-                      opset_version=18, external_data=False, dynamo=True)
-    model = onnx.load(str(tmp))
-    tmp.unlink()
-    onnx.checker.check_model(model)
-    buf = io.BytesIO()
-    onnx.save_model(model, buf)
-    data = buf.getvalue()
-    sess = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
-    rng = np.random.default_rng(0)
-    for n in (1, 7, 256):
-        x = rng.normal(0, 1, (n, n_in)).astype(np.float32)
-        y = sess.run(["actions"], {"obs": x})[0]
-        with torch.no_grad():
-            ref = actor(torch.from_numpy(x)).numpy()
-        if y.shape != (n, 12) or not np.allclose(y, ref, atol=1e-4, rtol=1e-4):
-            raise RuntimeError(f"onnxruntime disagrees with torch (batch {n}): "
-                               f"max err {np.abs(y - ref).max():.2e}")
+    data = onnx_bytes(actor, OBS_SIZE * cfg.env.obs_history)
     # every 10th iteration; the curve of a policy this run started from is thinned already
     hist = d.get("history", [])
     kept = [h for h in hist if h.get("from_policy")] + [
@@ -225,6 +201,39 @@ def export_policy(checkpoint, out_stem: str | Path,
     write_text_atomic(json_path, json.dumps(meta, indent=1) + "\n")
     write_bytes_atomic(train_state_path(onnx_path), state.getvalue())
     return onnx_path, json_path
+
+
+def onnx_bytes(actor: torch.nn.Module, n_in: int) -> bytes:
+    """The actor as a single-file ONNX model (opset 18, input ``obs`` (batch, n_in), output
+    ``actions`` (batch, 12), a dynamic batch), checked by onnx and run by onnxruntime against
+    torch on three batch sizes (RuntimeError where they disagree)."""
+    import tempfile
+
+    import onnx
+    import onnxruntime as ort
+
+    with tempfile.TemporaryDirectory() as tmpdir:
+        tmp = Path(tmpdir) / "actor.onnx"
+        torch.onnx.export(actor, (torch.zeros(2, n_in),), str(tmp), input_names=["obs"],
+                          output_names=["actions"],
+                          dynamic_shapes={"obs": {0: torch.export.Dim("batch", min=1, max=65536)}},
+                          opset_version=18, external_data=False, dynamo=True)
+        model = onnx.load(str(tmp))
+    onnx.checker.check_model(model)
+    buf = io.BytesIO()
+    onnx.save_model(model, buf)
+    data = buf.getvalue()
+    sess = ort.InferenceSession(data, providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(0)
+    for n in (1, 7, 256):
+        x = rng.normal(0, 1, (n, n_in)).astype(np.float32)
+        y = sess.run(["actions"], {"obs": x})[0]
+        with torch.no_grad():
+            ref = actor(torch.from_numpy(x)).numpy()
+        if y.shape != (n, 12) or not np.allclose(y, ref, atol=1e-4, rtol=1e-4):
+            raise RuntimeError(f"onnxruntime disagrees with torch (batch {n}): "
+                               f"max err {np.abs(y - ref).max():.2e}")
+    return data
 
 
 def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,

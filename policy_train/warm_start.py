@@ -45,6 +45,9 @@ def policy_start(onnx_path: str | Path) -> dict:
     for key in ("train_config", "iterations"):
         if key not in meta:
             raise ValueError(f"{meta_path}: no {key!r}: not an exported training policy")
+    if meta.get("refined_from"):  # its residual (policy_train.refine) is not the MLP's
+        raise ValueError(f"{onnx_path}: a refined policy (a residual over "
+                         f"{meta['refined_from']['policy']}'s network); start from that policy")
     try:
         graph = onnx.load(str(onnx_path)).graph
     except Exception as e:  # protobuf's DecodeError and the like: not an ONNX model

@@ -1,0 +1,365 @@
+"""``a2i-train refine``: a linear residual on the body's rate and tilt, added to an exported
+policy's actions while it lifts one leg, tuned by evolution strategies on the evaluation's
+episodes with common random numbers.
+
+Why not PPO: continued from these policies, PPO on 2 cores moves them off their level within
+100-200 iterations (docs/policy-training.md). The residual has 72 numbers, so a gradient
+estimate from a few antithetic pairs of whole calibration motions finds its direction; and
+every candidate of a generation plays the same episodes (masses, friction, gains, latency,
+pushes, observation noise: :class:`BlockRNG`), so the difference between a pair is the
+residual's, not the draws'.
+
+The residual, on the newest observation frame ``x`` (its scaled terms), while the lift
+command is the refined leg's::
+
+    a = actor(x) + D @ [omega_b * s_omega, g_b[x, y]] + b
+
+``a`` is a change of the joint targets per policy step (``delta_target``), so ``D`` on the
+body's rate adds an attitude term to the targets, ``D`` on the tilt an integral one, and
+``b`` a steady drift the policy must meet. Legs whose lifts the graph mirrors onto the refined
+leg's (``mirrored_legs``) get its mirror image.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from calib.atomic import write_bytes_atomic, write_text_atomic
+from calib.joints import MODEL_LEGS, check_leg
+from deploy.lift_schedule import LiftSchedule
+from policy_train.env import LIFT_VALUES
+
+__all__ = ["BlockRNG", "RefineConfig", "ResidualActor", "paired_rollouts", "refine",
+           "residual_columns", "score"]
+
+N_IN = 5  # body rate (3) and the gravity's x, y in the base frame (2)
+
+
+@dataclass
+class RefineConfig:
+    """ES settings. leg: the lift whose residual is tuned (mirrored legs follow). pairs:
+    antithetic pairs per generation; episodes: per leg and candidate; step: the update's
+    length as a fraction of one perturbation's; sigma_rate, sigma_tilt, sigma_bias: the
+    perturbations' scale of ``D``'s rate and tilt columns and of ``b`` (action units per
+    observation unit; action units). fail_cost: the score's cost of a failed episode, rad/s
+    per failed fraction of the episodes. seed: the directions and the episodes' draws
+    (generation g plays evaluation seed ``seed + g``)."""
+
+    leg: str = "FL"
+    pairs: int = 4
+    episodes: int = 24
+    step: float = 0.3
+    sigma_rate: float = 0.2
+    sigma_tilt: float = 0.3
+    sigma_bias: float = 0.005
+    fail_cost: float = 0.1
+    seed: int = 1000
+
+    def __post_init__(self) -> None:
+        self.leg = check_leg(self.leg)
+        if self.pairs < 1 or self.episodes < 1:
+            raise ValueError(f"pairs and episodes must be >= 1, got {self.pairs}, {self.episodes}")
+        for k in ("step", "sigma_rate", "sigma_tilt", "sigma_bias", "fail_cost"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f"{k} must be > 0, got {v}")
+
+    @property
+    def scales(self) -> np.ndarray:
+        """(72,) the perturbation scale of each parameter: D's rate columns, tilt columns, b."""
+        return np.r_[np.full(36, self.sigma_rate), np.full(24, self.sigma_tilt),
+                     np.full(12, self.sigma_bias)]
+
+
+def unpack(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(72,) parameters -> D (12, 5) (rate x, y, z, then tilt x, y columns), b (12,)."""
+    p = np.asarray(params, dtype=float)
+    if p.shape != (72,):
+        raise ValueError(f"a residual has 72 parameters, got {p.shape}")
+    return np.concatenate([p[:36].reshape(12, 3), p[36:60].reshape(12, 2)], 1), p[60:]
+
+
+def residual_columns(obs_terms) -> tuple[list[int], int, float]:
+    """The newest frame's columns the residual reads (base_ang_vel, projected_gravity x, y),
+    the lift command's column and its scale, from the JSON's ``observation.terms``."""
+    at, cols = {}, 0
+    for t in obs_terms:
+        at[t["name"]] = (cols, float(np.ravel(t.get("scale", 1.0))[0]))
+        cols += int(t["size"])
+    for name in ("base_ang_vel", "projected_gravity", "lift_command"):
+        if name not in at:
+            raise ValueError(f"the observation has no {name} term")
+    w, g = at["base_ang_vel"][0], at["projected_gravity"][0]
+    return [w, w + 1, w + 2, g, g + 1], at["lift_command"][0], at["lift_command"][1]
+
+
+class ResidualActor(torch.nn.Module):
+    """``mlp(x) + mask * (x[:, cols] @ D[group].T + b[group])``, mask: rows whose newest lift
+    command is ``lift_value`` (scaled). ``D`` (G, 12, 5) and ``b`` (G, 12) hold one residual
+    per group; ``group`` (rows,) picks each row's (None: group 0), so one batch can play
+    several candidates. Exported with one group."""
+
+    def __init__(self, mlp: torch.nn.Module, cols: list[int], lift_col: int, lift_value: float,
+                 D: np.ndarray, b: np.ndarray):
+        super().__init__()
+        self.mlp = mlp
+        self.register_buffer("cols", torch.tensor(cols, dtype=torch.long))
+        self.lift_col, self.lift_value = int(lift_col), float(lift_value)
+        self.set_residual(D, b)
+        self.group: torch.Tensor | None = None
+
+    def set_residual(self, D: np.ndarray, b: np.ndarray) -> None:
+        D, b = np.asarray(D, dtype=np.float32), np.asarray(b, dtype=np.float32)
+        if D.ndim == 2:
+            D, b = D[None], b[None]
+        self.register_buffer("D", torch.from_numpy(D.copy()))
+        self.register_buffer("b", torch.from_numpy(b.copy()))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        on = (torch.abs(x[:, self.lift_col] - self.lift_value) < 1e-3).to(x.dtype).unsqueeze(-1)
+        if self.group is None:
+            r = x[:, self.cols] @ self.D[0].T + self.b[0]
+        else:
+            r = torch.einsum("noi,ni->no", self.D[self.group], x[:, self.cols]) + self.b[self.group]
+        return self.mlp(x) + on * r
+
+
+def build_actor(source_onnx: str | Path, leg: str, groups: int = 1):
+    """(meta, actor, residual): the source policy's MLP under a zero residual of ``groups``
+    candidates for lifts of ``leg``, wrapped as the source's graph mirrors its legs."""
+    from rsl_rl.modules import MLP
+
+    from policy_train.config import TrainConfig
+    from policy_train.symmetry import MirroredLegsActor
+    from policy_train.warm_start import policy_start
+
+    start = policy_start(source_onnx)  # ValueError unless an exported (unrefined) policy
+    meta = json.loads(Path(source_onnx).with_suffix(".json").read_text())
+    cfg = TrainConfig.from_dict(meta["train_config"])
+    n_in = int(meta["observation"]["size"])
+    mlp = MLP(n_in, 12, _hidden(start), "elu")
+    mlp.load_state_dict(start["actor_mlp"])
+    terms = meta["observation"]["terms"]
+    cols, lift_col, lift_scale = residual_columns(terms)
+    res = ResidualActor(mlp, cols, lift_col, LIFT_VALUES[leg] * lift_scale,
+                        np.zeros((groups, 12, N_IN)), np.zeros((groups, 12)))
+    mirrored = meta.get("mirrored_legs") or {}
+    if leg in mirrored:
+        raise ValueError(f"{leg}'s lifts are the mirror of {mirrored[leg]}'s: refine "
+                         f"{mirrored[leg]}")
+    actor = (MirroredLegsActor(res, terms, mirrored, cfg.env.obs_history) if mirrored
+             else res).eval()
+    return meta, actor, res
+
+
+def _hidden(start: dict) -> list[int]:
+    """Hidden widths from the MLP's weights (a distilled student may differ from PPO's)."""
+    ws = [v for k, v in sorted(start["actor_mlp"].items(), key=lambda kv: int(kv[0].split(".")[0]))
+          if k.endswith("weight")]
+    return [int(w.shape[0]) for w in ws[:-1]]
+
+
+_SIZE_AT = {"uniform": 2, "integers": 2, "random": 0, "choice": 1, "normal": 2}
+"""Where each Generator method takes its ``size``, positionally."""
+
+
+class BlockRNG:
+    """A ``numpy.random.Generator`` for ``blocks`` equal blocks of envs laid out one after
+    another: a draw whose first dimension is a multiple of ``blocks`` is drawn for one block
+    and repeated, so every block sees the same randomness (a draw over all envs, or over the
+    same envs of every block: resets, pushes, observation noise). Other draws pass through."""
+
+    def __init__(self, rng: np.random.Generator, blocks: int):
+        self.rng, self.blocks = rng, int(blocks)
+
+    def __getattr__(self, name: str):
+        f = getattr(self.rng, name)
+        if name not in _SIZE_AT:
+            return f
+        at = _SIZE_AT[name]
+
+        def draw(*args, **kw):
+            args = list(args)
+            size = kw.get("size", args[at] if len(args) > at else None)
+            if size is None:
+                return f(*args, **kw)
+            shape = (int(size),) if np.isscalar(size) else tuple(size)
+            if shape[0] == 0 or shape[0] % self.blocks:
+                return f(*args, **kw)
+            one = (shape[0] // self.blocks,) + shape[1:]
+            if "size" in kw:
+                kw["size"] = one
+            else:
+                args[at] = one
+            return np.concatenate([f(*args, **kw)] * self.blocks, axis=0)
+
+        return draw
+
+
+def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, candidates,
+                    legs, episodes: int, seed: int) -> list[dict]:
+    """Each candidate (D, b) over the same ``episodes`` per leg of ``legs`` (the evaluation's
+    environment, :func:`policy_train.evaluate.evaluation_env`, with seed ``seed``), one
+    batch. Per candidate and leg: ``rate`` (rad/s RMS of the body rate in the excitation,
+    failed episodes up to their fall, as the evaluation), ``fails`` (falls, other contacts,
+    the lifted foot down), ``track`` (rad). A fallen env is reset with new draws; its push
+    timer is kept with its twins' so the blocks' pushes stay common."""
+    from policy_train.evaluate import evaluation_env
+
+    C = len(candidates)
+    env, leg_of = evaluation_env(meta, tuple(legs) * C, episodes, seed)
+    env.rng = BlockRNG(np.random.default_rng(seed), C)  # redraw every env as blocks
+    env._randomize_masses()
+    env.reset_all()
+    env.p_excite = 1.0
+    env._sample_commands(np.arange(env.N), legs=leg_of)
+    env.lift_plan[:] = leg_of
+    env.lift_dur[:, 3] = env.pool.duration[leg_of]
+    N, B = env.N, env.N // C
+    res.set_residual(np.stack([c[0] for c in candidates]), np.stack([c[1] for c in candidates]))
+    res.group = torch.as_tensor(np.repeat(np.arange(C), B))
+    sched = LiftSchedule.from_metadata(meta["lift_schedule"])
+    n_steps = int(np.ceil((float(sched.total(legs[0])) + 0.5) / env.dt))
+    alive = np.ones(N, dtype=bool)
+    failed = np.zeros(N, dtype=bool)
+    rate2, err2, nexc = np.zeros(N), np.zeros(N), np.zeros(N)
+    obs = env.observations()["policy"]
+    try:
+        with torch.no_grad():
+            for _ in range(n_steps):
+                ob, _, _, extras = env.step(actor(torch.as_tensor(obs, dtype=torch.float32)).numpy())
+                obs = ob["policy"]
+                alive &= ~extras["terminated"]
+                failed |= ~alive | ((env.other_touch | env.lift_touch) & alive)
+                exc = alive & (env.phase == 3)
+                rate2[exc] += np.sum(env.ang_vel_b[exc] ** 2, 1)
+                err2[exc] += np.nanmean(env.lift_err[exc] ** 2, 1)
+                nexc[exc] += 1
+                a, t = alive.reshape(C, B), env.push_timer.reshape(C, B)
+                if not a.all():
+                    twin = t[a.argmax(0), np.arange(B)]
+                    t[:] = np.where(a, t, np.where(a.any(0), twin, np.inf))
+    finally:
+        res.group = None
+    out = []
+    for c in range(C):
+        sl = slice(c * B, (c + 1) * B)
+        row = {}
+        for leg in legs:
+            sel = leg_of[sl] == MODEL_LEGS.index(leg)
+            ok = sel & (nexc[sl] > 0)
+            n = nexc[sl][ok].sum()
+            row[leg] = {"rate": float(np.sqrt(rate2[sl][ok].sum() / n)) if n else float("inf"),
+                        "fails": int(failed[sl][sel].sum()),
+                        "track": float(np.sqrt(err2[sl][ok].sum() / n)) if n else float("inf")}
+        out.append(row)
+    return out
+
+
+def score(row: dict, episodes: int, fail_cost: float) -> float:
+    """Sum over the legs of the body-rate RMS (rad/s) plus ``fail_cost`` times the failed
+    fraction; lower is better (inf where a leg never reached its excitation)."""
+    return float(sum(v["rate"] + fail_cost * v["fails"] / episodes for v in row.values()))
+
+
+@dataclass
+class RefineState:
+    """Where a refinement stands: the residual's parameters (72,) and one record per
+    generation done."""
+
+    params: list[float] = field(default_factory=lambda: [0.0] * 72)
+    history: list[dict] = field(default_factory=list)
+
+
+def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg: RefineConfig,
+           state_path: str | Path, resume: bool = False, log=print) -> tuple[Path, Path]:
+    """Tune the residual for ``generations`` more generations from ``state_path`` (resume) or
+    from zero, saving the state after each; then write ``<out_stem>.onnx`` / ``.json``: the
+    source's network with the residual in its graph, the JSON the source's with
+    ``refined_from`` and no evaluation (run ``a2i-train eval``)."""
+    state_path = Path(state_path)
+    if resume:
+        saved = json.loads(state_path.read_text())
+        if saved["source"] != Path(source_onnx).name:
+            raise ValueError(f"{state_path} refines {saved['source']}, not {Path(source_onnx).name}")
+        cfg = RefineConfig(**saved["config"])
+        state = RefineState(saved["params"], saved["history"])
+    else:
+        state = RefineState()
+    legs = _legs_of(source_onnx, cfg.leg)
+    K = cfg.pairs
+    meta, actor, res = build_actor(source_onnx, cfg.leg, 2 * K + 1)
+    theta = np.asarray(state.params, dtype=float) / cfg.scales  # in units of the perturbation
+    dim = theta.size
+    for _ in range(generations):
+        gen = len(state.history)
+        t0 = time.time()
+        eps = np.random.default_rng([cfg.seed, gen]).normal(size=(K, dim))
+        cands = [theta] + [theta + e for e in eps] + [theta - e for e in eps]
+        rows = paired_rollouts(meta, actor, res, [unpack(c * cfg.scales) for c in cands], legs,
+                               cfg.episodes, cfg.seed + gen)
+        J = np.array([score(r, cfg.episodes, cfg.fail_cost) for r in rows])
+        diff = np.nan_to_num(J[1:K + 1] - J[K + 1:], posinf=1.0, neginf=-1.0) / 2
+        grad = diff @ eps / K
+        norm = np.linalg.norm(grad)
+        if norm > 0:
+            theta = theta - cfg.step * np.sqrt(dim) * grad / norm
+        rec = {"generation": gen, "seed": cfg.seed + gen, "score": float(J[0]),
+               "score_best": float(J.min()), "score_mean": float(J[1:].mean()),
+               "legs": rows[0], "wall_s": round(time.time() - t0, 1)}
+        state.params = (theta * cfg.scales).tolist()
+        state.history.append(rec)
+        write_text_atomic(state_path, json.dumps(
+            {"source": Path(source_onnx).name, "config": asdict(cfg), **asdict(state)}, indent=1) + "\n")
+        log(f"generation {gen}: score {J[0]:.4f} (candidates {J.min():.4f}-{J.max():.4f}); "
+            + ", ".join(f"{g} {v['rate']:.3f} rad/s {v['fails']} failed" for g, v in rows[0].items())
+            + f"; |residual| {np.linalg.norm(theta):.2f} sigma, {rec['wall_s']:.0f} s")
+    return export_refined(source_onnx, out_stem, np.asarray(state.params), cfg, state.history)
+
+
+def _legs_of(source_onnx, leg: str) -> tuple[str, ...]:
+    """The refined leg and the legs whose lifts mirror it: the lifts the residual acts on."""
+    meta = json.loads(Path(source_onnx).with_suffix(".json").read_text())
+    mirrored = meta.get("mirrored_legs") or {}
+    return (leg, *sorted(g for g, src in mirrored.items() if src == leg))
+
+
+def export_refined(source_onnx, out_stem, params: np.ndarray, cfg: RefineConfig,
+                   history: list[dict]) -> tuple[Path, Path]:
+    """Write the refined policy: ONNX (checked against torch) and the source's JSON with
+    ``refined_from`` (source, commit, leg, the residual, the settings and each generation's
+    score) and its evaluation cleared."""
+    from deploy.policy import PolicyMeta
+    from policy_train.export import git_commit, onnx_bytes
+
+    meta, actor, res = build_actor(source_onnx, cfg.leg, 1)
+    D, b = unpack(params)
+    res.set_residual(D, b)
+    data = onnx_bytes(actor, int(meta["observation"]["size"]))
+    out_stem = Path(out_stem)
+    name = out_stem.name.removesuffix(".onnx")
+    src = Path(source_onnx)
+    meta["refined_from"] = {
+        "policy": src.name, "commit": meta.get("commit"), "leg": cfg.leg,
+        "legs": list(_legs_of(source_onnx, cfg.leg)),
+        "inputs": ["base_ang_vel x", "base_ang_vel y", "base_ang_vel z",
+                   "projected_gravity x", "projected_gravity y"],
+        "D": D.round(6).tolist(), "b": b.round(6).tolist(), "config": asdict(cfg),
+        "generations": [{k: h[k] for k in ("generation", "seed", "score", "score_best",
+                                           "score_mean")} for h in history]}
+    meta.update(name=name, onnx=f"{name}.onnx", commit=git_commit(), evaluation={},
+                created_utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
+    meta.pop("evaluation_nominal", None)
+    onnx_path, json_path = out_stem.with_name(name + ".onnx"), out_stem.with_name(name + ".json")
+    PolicyMeta.from_dict(meta, json_path)  # as deploy will read it: ValueError before writing
+    onnx_path.parent.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(onnx_path, data)
+    write_text_atomic(json_path, json.dumps(meta, indent=1) + "\n")
+    return onnx_path, json_path

@@ -1,0 +1,144 @@
+"""`a2i-train refine`: the residual acts only on the refined lift (and its mirror), every
+candidate of a generation plays the same episodes, and the refined policy exports, resumes and
+refuses to be warm-started as a plain network."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from policy_train.refine import (
+    BlockRNG,
+    RefineConfig,
+    build_actor,
+    paired_rollouts,
+    refine,
+    residual_columns,
+    unpack,
+)
+
+V21 = Path(__file__).resolve().parents[1] / "policies" / "tripod_go2_v21.onnx"
+
+
+def test_block_rng_repeats_each_blocks_draws_and_passes_the_rest_through():
+    r = BlockRNG(np.random.default_rng(0), 3)
+    for x in (r.uniform(-1, 1, (6, 2)), r.integers(0, 1000, 6), r.random(6),
+              r.choice(4, 6, p=[0.1, 0.2, 0.3, 0.4]), r.uniform(size=(9, 2, 2))):
+        blocks = np.split(x, 3)
+        assert all(np.array_equal(blocks[0], b) for b in blocks[1:])
+        assert x.shape[0] in (6, 9)
+    x = r.uniform(0, 1, (2, 2))  # one env of two blocks: not a block draw
+    assert x.shape == (2, 2) and not np.array_equal(x[0], x[1])
+    assert np.isscalar(r.uniform(0, 1)) and r.integers(0, 5, size=4).shape == (4,)
+    plain = np.random.default_rng(0)
+    assert BlockRNG(plain, 2).bit_generator is plain.bit_generator
+
+
+def test_residual_reads_the_newest_rate_and_tilt():
+    meta = json.loads(V21.with_suffix(".json").read_text())
+    cols, lift_col, scale = residual_columns(meta["observation"]["terms"])
+    assert cols == [3, 4, 5, 6, 7] and lift_col == 48 and scale == 0.25
+    with pytest.raises(ValueError, match="lift_command"):
+        residual_columns([t for t in meta["observation"]["terms"] if t["name"] != "lift_command"])
+    with pytest.raises(ValueError, match="72"):
+        unpack(np.zeros(71))
+
+
+def test_residual_acts_on_the_refined_lift_and_mirrors_onto_its_twin():
+    """Zero residual: the source's ONNX. A residual for FL changes FL's lifts by D x + b,
+    FR's (mirrored onto FL in v21's graph) by its mirror image, and nothing else."""
+    from policy_train.symmetry import ActionMirror, Mirror, policy_terms
+
+    meta, actor, res = build_actor(V21, "FL")
+    sess = ort.InferenceSession(str(V21), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(3)
+    x = rng.normal(0, 0.3, (6, 490)).astype(np.float32)
+    values = {"none": 0.0, "FL": 0.25, "FR": 0.5, "RL": 0.75, "RR": 1.0}
+    with torch.no_grad():
+        for leg, v in values.items():
+            x[:, 48::49] = v
+            np.testing.assert_allclose(actor(torch.from_numpy(x)).numpy(),
+                                       sess.run(None, {"obs": x})[0], atol=1e-4, err_msg=leg)
+        D, b = rng.normal(size=(12, 5)), rng.normal(size=12)
+        res.set_residual(D, b)
+        terms, scale = policy_terms(meta["observation"]["terms"])
+        m_obs, m_act = Mirror(terms, scale, 10), ActionMirror()
+        for leg, v in values.items():
+            x[:, 48::49] = v
+            got = actor(torch.from_numpy(x)).numpy()
+            base = sess.run(None, {"obs": x})[0]
+            if leg == "FL":
+                want = base + x[:, [3, 4, 5, 6, 7]] @ D.T + b
+            elif leg == "FR":
+                xm = m_obs(torch.from_numpy(x)).numpy()
+                want = base + m_act(torch.from_numpy(xm[:, [3, 4, 5, 6, 7]] @ D.T + b)).numpy()
+            else:
+                want = base
+            np.testing.assert_allclose(got, want, atol=1e-4, err_msg=leg)
+    with pytest.raises(ValueError, match="mirror"):
+        build_actor(V21, "FR")
+
+
+def test_candidates_play_the_same_episodes():
+    """Two equal candidates give the same figures (the same masses, friction, pushes and
+    noise); a drifting one differs."""
+    meta, actor, res = build_actor(V21, "FL", 3)
+    zero = (np.zeros((12, 5)), np.zeros(12))
+    drift = (np.zeros((12, 5)), np.full(12, 0.02))
+    rows = paired_rollouts(meta, actor, res, [zero, drift, zero], ("FL",), 2, seed=5)
+    # equal but for the float rounding of a row's place in the batch's matrix products
+    a, b, c = (r["FL"]["rate"] for r in rows)
+    assert abs(c - a) < 1e-3 * a and abs(b - a) > 10 * abs(c - a), (a, b, c)
+    assert 0 < rows[0]["FL"]["rate"] < 1 and rows[0]["FL"]["track"] < 0.05
+    assert res.group is None
+
+
+def test_refine_exports_resumes_and_is_no_warm_start(tmp_path):
+    from deploy.policy import PolicyMeta
+    from policy_train.warm_start import policy_start
+
+    cfg = RefineConfig(pairs=1, episodes=1, seed=7)
+    state = tmp_path / "s.json"
+    lines = []
+    onnx_path, json_path = refine(V21, tmp_path / "r", 1, cfg, state, log=lines.append)
+    assert len(lines) == 1 and lines[0].startswith("generation 0: score")
+    saved = json.loads(state.read_text())
+    assert saved["source"] == V21.name and len(saved["history"]) == 1
+    assert np.linalg.norm(saved["params"]) > 0  # one step taken
+    refine(V21, tmp_path / "r", 1, RefineConfig(pairs=3), state, resume=True, log=lines.append)
+    saved = json.loads(state.read_text())
+    assert [h["generation"] for h in saved["history"]] == [0, 1]
+    assert saved["config"]["pairs"] == 1  # the state's settings, not the new ones
+    meta = json.loads(json_path.read_text())
+    PolicyMeta.from_dict(meta, json_path)
+    rf = meta["refined_from"]
+    assert rf["policy"] == V21.name and rf["legs"] == ["FL", "FR"] and len(rf["generations"]) == 2
+    assert meta["evaluation"] == {} and "evaluation_nominal" not in meta
+    D, b = unpack(saved["params"])
+    np.testing.assert_allclose(rf["D"], D, atol=1e-6)
+    # the ONNX is the source plus the state's residual on FL's lifts
+    x = np.random.default_rng(0).normal(0, 0.3, (4, 490)).astype(np.float32)
+    x[:, 48::49] = 0.25
+    got = ort.InferenceSession(str(onnx_path)).run(None, {"obs": x})[0]
+    src = ort.InferenceSession(str(V21)).run(None, {"obs": x})[0]
+    np.testing.assert_allclose(got, src + x[:, [3, 4, 5, 6, 7]] @ D.T + b, atol=1e-4)
+    with pytest.raises(ValueError, match="refined"):
+        policy_start(onnx_path)
+    with pytest.raises(ValueError, match="refines"):
+        refine(json_path.with_suffix(".onnx"), tmp_path / "q", 1, cfg, state, resume=True)
+
+
+@pytest.mark.parametrize(("extra", "hint"), [
+    (["--leg", "FL,FR"], "one leg"), (["--leg", "XX"], "XX"), (["--pairs", "0"], "pairs"),
+    (["--resume", "--state", "nowhere.json"], "no state")])
+def test_bad_refine_exits_with_one_line(extra, hint, tmp_path):
+    p = subprocess.run([sys.executable, "-m", "policy_train.cli", "refine", str(V21), "--out",
+                        str(tmp_path / "o"), "--generations", "1", *extra],
+                       capture_output=True, text=True, timeout=120, check=False)
+    err = [line for line in p.stderr.splitlines() if "error" in line]
+    assert p.returncode == 2 and len(err) == 1 and hint in err[0], p.stderr
