@@ -143,9 +143,11 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     name_in = sess.get_inputs()[0].name
     for _ in range(n_steps):
         act = sess.run(None, {name_in: obs.astype(np.float32)})[0]
+        before = env.phase.copy()
         ob, _, _, extras = env.step(act)
         obs = ob["policy"]
         term = extras["terminated"]
+        phase = step_phase(before, env.phase, term)
         was_ok = alive & ~touched_other & ~touched_lift
         alive &= ~term
         touched_other |= env.other_touch & alive
@@ -153,7 +155,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
         for i in np.flatnonzero(was_ok & (term | env.other_touch | env.lift_touch)):
             cause[i] = failure_cause(bool(term[i]), [geoms[g] for g in np.flatnonzero(
                 env.geom_touch[i])], MODEL_LEGS[leg_of[i]], bool(env.lift_touch[i]))
-            cause_phase[i] = PHASES[min(env.phase[i], len(PHASES) - 1)]
+            cause_phase[i] = PHASES[min(phase[i], len(PHASES) - 1)]
         exc = alive & (env.phase == 3)
         if exc.any():
             foot_z = env.sensordata[:, env.tm.foot_pos + 2]
@@ -235,6 +237,13 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
         meta["evaluation"] = result
         write_text_atomic(onnx_path.with_suffix(".json"), json.dumps(meta, indent=1) + "\n")
     return result
+
+
+def step_phase(before: np.ndarray, after: np.ndarray, terminated: np.ndarray) -> np.ndarray:
+    """(N,) the schedule phase each env's policy step ended in: ``after``'s, but for a
+    terminated env the one it started in (``before``), since the step resets it and ``after``
+    is then the new episode's."""
+    return np.where(terminated, before, after)
 
 
 def failure_cause(fell: bool, geoms: list[str], lifted: str, lift_touch: bool) -> str:

@@ -10,7 +10,7 @@ import onnx
 import onnxruntime as ort
 import pytest
 
-from deploy.lift_schedule import LiftSchedule
+from deploy.lift_schedule import PHASES, LiftSchedule
 from deploy.observation import build_observation
 
 
@@ -742,3 +742,30 @@ def test_from_policy_bad_inputs_exit_2_with_one_line(exported, tmp_path):
         p = run(*args)
         err = [line for line in p.stderr.splitlines() if "error:" in line]
         assert p.returncode == 2 and len(err) == 1 and hint in err[0], (args, p.stderr)
+
+
+def test_a_fall_is_counted_in_the_phase_it_happened_in():
+    """The env resets a fallen episode inside its step, so the phase after the step is the new
+    episode's; the evaluation takes the fall's phase from before the step."""
+    from pathlib import Path
+
+    from deploy.policy import default_policy_path
+    from policy_train.evaluate import evaluation_env, step_phase
+
+    json_path = default_policy_path([Path(__file__).resolve().parents[1] / "policies"])
+    meta = json.loads(json_path.read_text())
+    onnx_path = json_path.with_name(meta["onnx"])
+    env, _ = evaluation_env(meta, ("FL",), 1, seed=0, nominal=True)
+    sess = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    obs = env.observations()["policy"]
+    for _ in range(200):  # the policy plays until the excitation
+        obs = env.step(sess.run(None, {"obs": obs.astype(np.float32)})[0])[0]["policy"]
+        if env.phase[0] == PHASES.index("excite"):
+            break
+    assert env.phase[0] == PHASES.index("excite")
+    env.qpos[0, 3:7] = [0.0, 1.0, 0.0, 0.0]  # upside down: a fall
+    before = env.phase.copy()
+    _, _, _, extras = env.step(np.zeros((1, 12), dtype=np.float32))
+    assert extras["terminated"][0] and env.phase[0] != PHASES.index("excite")
+    assert step_phase(before, env.phase, extras["terminated"])[0] == PHASES.index("excite")
+    assert step_phase(before, env.phase, ~extras["terminated"])[0] == env.phase[0]
