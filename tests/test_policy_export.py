@@ -4,6 +4,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import onnx
@@ -747,8 +748,6 @@ def test_from_policy_bad_inputs_exit_2_with_one_line(exported, tmp_path):
 def test_a_fall_is_counted_in_the_phase_it_happened_in():
     """The env resets a fallen episode inside its step, so the phase after the step is the new
     episode's; the evaluation takes the fall's phase from before the step."""
-    from pathlib import Path
-
     from deploy.policy import default_policy_path
     from policy_train.evaluate import evaluation_env, step_phase
 
