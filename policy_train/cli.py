@@ -18,8 +18,10 @@
   a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD]
                    [--t-r S]       (the same network with other deploy gains or excitation speed)
   a2i-train refine policies/NAME.onnx --out policies/OTHER [--generations 40] [--leg FL]
-                   [--pairs 4] [--episodes 24] [--seed 1000] [--state F] [--resume]
-                                   (a linear residual on the body's rate and tilt, by ES)
+                   [--pairs 4] [--episodes 24] [--fail-cost 0.1] [--dr FIELD=VALUE ...]
+                   [--seed 1000] [--state F] [--resume]
+                                   (a linear residual on the body's rate and tilt, by ES;
+                                    of a refined policy: goes on from its residual)
   a2i-train pack OUTDIR            (compiled model, plan pool and leg dynamics for a machine
                                     without the URDF)
 
@@ -215,7 +217,7 @@ def _refine(a) -> int:
     if a.resume_state and not state.is_file():
         raise ValueError(f"--resume: no state {state}")
     cfg = RefineConfig(leg=a.leg, pairs=a.pairs, episodes=a.episodes, step=a.step,
-                       seed=a.seed)
+                       fail_cost=a.fail_cost, seed=a.seed, dr=dict(a.dr))
     print(f"refine: {a.onnx}, {a.generations} generations of {2 * cfg.pairs + 1} candidates x "
           f"{cfg.episodes} episodes per leg, state {state}", flush=True)
     onnx_path, json_path = refine(a.onnx, a.out, a.generations, cfg, state, resume=a.resume_state,
@@ -612,7 +614,8 @@ def main(argv: list[str] | None = None) -> int:
                    "the policy trained against; slower motions shake the tripod less")
     r = sub.add_parser("refine", help="add a linear residual on the body's rate and tilt to an "
                        "exported policy's lifts of one leg, tuned by evolution strategies")
-    r.add_argument("onnx", help="the exported policy (its .json beside it)")
+    r.add_argument("onnx", help="the exported policy (its .json beside it); a refined policy "
+                   "goes on from its residual, over its source's network (beside it)")
     r.add_argument("--out", required=True, help="path stem, e.g. policies/tripod_v2")
     r.add_argument("--generations", type=_count, default=40,
                    help="ES generations (each about a minute on 2 cores at the defaults)")
@@ -623,6 +626,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="episodes per leg and candidate, the same draws for every candidate")
     r.add_argument("--step", type=_number(1e-3, 10.0, "must be in [0.001, 10)"), default=0.3,
                    help="the update's length, as a fraction of one perturbation's")
+    r.add_argument("--fail-cost", type=_number(1e-6, 100.0, "must be in (0, 100)"), default=0.1,
+                   help="the score's cost of failed episodes, rad/s per failed fraction")
+    r.add_argument("--dr", type=_dr_setting, action="append", default=[], metavar="FIELD=VALUE",
+                   help="a DRConfig field over the standard ranges for the episodes played "
+                   "(repeatable), e.g. --dr push_vel=0.5 for harder shoves")
     r.add_argument("--seed", type=int, default=1000,
                    help="directions and draws: generation g plays evaluation seed SEED + g")
     r.add_argument("--state", default=None,

@@ -290,8 +290,13 @@ def _refined(meta: dict) -> str:
     r = meta.get("refined_from")
     if not r:
         return ""
+    dr = r.get("config", {}).get("dr") or {}
+    played = (" on episodes with " + ", ".join(f"{k} {v}" for k, v in dr.items())) if dr else ""
+    c = r.get("continued_from")
+    went_on = (f" (the last {len(r['generations']) - c['generations']} going on from "
+               f"`{c['policy']}`'s residual{played})" if c else played)
     return (f"; then {len(r['generations'])} generations of `a2i-train refine` on "
-            f"`{r['policy']}`: a linear residual on the body's rate and tilt for the "
+            f"`{r['policy']}`{went_on}: a linear residual on the body's rate and tilt for the "
             f"{' and '.join(r['legs'])} lifts, tuned by evolution strategies")
 
 

@@ -37,7 +37,7 @@ from deploy.lift_schedule import LiftSchedule
 from policy_train.env import LIFT_VALUES
 
 __all__ = ["BlockRNG", "RefineConfig", "ResidualActor", "paired_rollouts", "refine",
-           "residual_columns", "score"]
+           "refine_start", "residual_columns", "score"]
 
 N_IN = 5  # body rate (3) and the gravity's x, y in the base frame (2)
 
@@ -50,7 +50,9 @@ class RefineConfig:
     perturbations' scale of ``D``'s rate and tilt columns and of ``b`` (action units per
     observation unit; action units). fail_cost: the score's cost of a failed episode, rad/s
     per failed fraction of the episodes. seed: the directions and the episodes' draws
-    (generation g plays evaluation seed ``seed + g``)."""
+    (generation g plays evaluation seed ``seed + g``). dr: ``DRConfig`` fields set over the
+    evaluation's standard ranges for the episodes played (``{"push_vel": 0.5}``: harder
+    shoves, so that falls are frequent enough to have a gradient)."""
 
     leg: str = "FL"
     pairs: int = 4
@@ -61,9 +63,13 @@ class RefineConfig:
     sigma_bias: float = 0.005
     fail_cost: float = 0.1
     seed: int = 1000
+    dr: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        from policy_train.config import DRConfig
+
         self.leg = check_leg(self.leg)
+        DRConfig().with_settings(self.dr)  # ValueError on an unknown field
         if self.pairs < 1 or self.episodes < 1:
             raise ValueError(f"pairs and episodes must be >= 1, got {self.pairs}, {self.episodes}")
         for k in ("step", "sigma_rate", "sigma_tilt", "sigma_bias", "fail_cost"):
@@ -84,6 +90,14 @@ def unpack(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if p.shape != (72,):
         raise ValueError(f"a residual has 72 parameters, got {p.shape}")
     return np.concatenate([p[:36].reshape(12, 3), p[36:60].reshape(12, 2)], 1), p[60:]
+
+
+def pack(D, b) -> np.ndarray:
+    """The inverse of :func:`unpack`: D (12, 5), b (12,) -> (72,) parameters."""
+    D, b = np.asarray(D, dtype=float), np.asarray(b, dtype=float)
+    if D.shape != (12, N_IN) or b.shape != (12,):
+        raise ValueError(f"a residual is D (12, {N_IN}) and b (12,), got {D.shape}, {b.shape}")
+    return np.r_[D[:, :3].ravel(), D[:, 3:].ravel(), b]
 
 
 def residual_columns(obs_terms) -> tuple[list[int], int, float]:
@@ -204,17 +218,17 @@ class BlockRNG:
 
 
 def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, candidates,
-                    legs, episodes: int, seed: int) -> list[dict]:
+                    legs, episodes: int, seed: int, dr_set: dict | None = None) -> list[dict]:
     """Each candidate (D, b) over the same ``episodes`` per leg of ``legs`` (the evaluation's
-    environment, :func:`policy_train.evaluate.evaluation_env`, with seed ``seed``), one
-    batch. Per candidate and leg: ``rate`` (rad/s RMS of the body rate in the excitation,
-    failed episodes up to their fall, as the evaluation), ``fails`` (falls, other contacts,
-    the lifted foot down), ``track`` (rad). A fallen env is reset with new draws; its push
+    environment, :func:`policy_train.evaluate.evaluation_env`, with seed ``seed`` and
+    ``dr_set``'s fields over its standard ranges), one batch. Per candidate and leg: ``rate``
+    (rad/s RMS of the body rate in the excitation, failed episodes up to their fall, as the
+    evaluation), ``fails`` (falls, other contacts, the lifted foot down), ``track`` (rad). A fallen env is reset with new draws; its push
     timer is kept with its twins' so the blocks' pushes stay common."""
     from policy_train.evaluate import evaluation_env
 
     C = len(candidates)
-    env, leg_of = evaluation_env(meta, tuple(legs) * C, episodes, seed)
+    env, leg_of = evaluation_env(meta, tuple(legs) * C, episodes, seed, dr_set=dr_set)
     env.rng = BlockRNG(np.random.default_rng(seed), C)  # redraw every env as blocks
     env._randomize_masses()
     env.reset_all()
@@ -278,21 +292,49 @@ class RefineState:
     history: list[dict] = field(default_factory=list)
 
 
+def refine_start(start_onnx: str | Path, leg: str) -> tuple[Path, RefineState, dict | None]:
+    """(network, state, continued): where a refinement of ``start_onnx`` begins. A plain
+    exported policy is the network, under a zero residual. A refined one (its JSON's
+    ``refined_from``) goes on from its residual over its source's network (the file of that
+    name beside it), with its generations as the history, so that generation numbers and
+    hence the seeds played go on; ``continued`` then records the policy continued, its
+    generations and settings."""
+    start_onnx = Path(start_onnx)
+    rf = json.loads(start_onnx.with_suffix(".json").read_text()).get("refined_from")
+    if not rf:
+        return start_onnx, RefineState(), None
+    if check_leg(leg) != rf["leg"]:
+        raise ValueError(f"{start_onnx.name} refines {rf['leg']}'s lifts, not {leg}'s")
+    network = start_onnx.with_name(rf["policy"])
+    if not network.is_file():
+        raise ValueError(f"{start_onnx.name} is refined from {rf['policy']}, which is not "
+                         f"beside it")
+    state = RefineState(pack(rf["D"], rf["b"]).tolist(), [dict(g) for g in rf["generations"]])
+    continued = {"policy": start_onnx.name, "generations": len(rf["generations"]),
+                 "config": rf["config"], **({"continued_from": rf["continued_from"]}
+                                            if "continued_from" in rf else {})}
+    return network, state, continued
+
+
 def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg: RefineConfig,
            state_path: str | Path, resume: bool = False, log=print) -> tuple[Path, Path]:
-    """Tune the residual for ``generations`` more generations from ``state_path`` (resume) or
-    from zero, saving the state after each; then write ``<out_stem>.onnx`` / ``.json``: the
-    source's network with the residual in its graph, the JSON the source's with
-    ``refined_from`` and no evaluation (run ``a2i-train eval``)."""
+    """Tune the residual for ``generations`` more generations from ``state_path`` (resume), or
+    from where ``source_onnx`` leaves it (:func:`refine_start`: zero, or a refined policy's
+    residual), saving the state after each; then write ``<out_stem>.onnx`` / ``.json``: the
+    network with the residual in its graph, the JSON the network's with ``refined_from`` and
+    no evaluation (run ``a2i-train eval``)."""
     state_path = Path(state_path)
+    start = Path(source_onnx).name
     if resume:
         saved = json.loads(state_path.read_text())
-        if saved["source"] != Path(source_onnx).name:
-            raise ValueError(f"{state_path} refines {saved['source']}, not {Path(source_onnx).name}")
+        if saved.get("start", saved["source"]) != start:
+            raise ValueError(f"{state_path} refines {saved.get('start', saved['source'])}, "
+                             f"not {start}")
         cfg = RefineConfig(**saved["config"])
+        source_onnx, _, continued = refine_start(source_onnx, cfg.leg)
         state = RefineState(saved["params"], saved["history"])
     else:
-        state = RefineState()
+        source_onnx, state, continued = refine_start(source_onnx, cfg.leg)
     legs = _legs_of(source_onnx, cfg.leg)
     K = cfg.pairs
     meta, actor, res = build_actor(source_onnx, cfg.leg, 2 * K + 1)
@@ -304,7 +346,7 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
         eps = np.random.default_rng([cfg.seed, gen]).normal(size=(K, dim))
         cands = [theta] + [theta + e for e in eps] + [theta - e for e in eps]
         rows = paired_rollouts(meta, actor, res, [unpack(c * cfg.scales) for c in cands], legs,
-                               cfg.episodes, cfg.seed + gen)
+                               cfg.episodes, cfg.seed + gen, cfg.dr)
         J = np.array([score(r, cfg.episodes, cfg.fail_cost) for r in rows])
         diff = np.nan_to_num(J[1:K + 1] - J[K + 1:], posinf=1.0, neginf=-1.0) / 2
         grad = diff @ eps / K
@@ -317,11 +359,13 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
         state.params = (theta * cfg.scales).tolist()
         state.history.append(rec)
         write_text_atomic(state_path, json.dumps(
-            {"source": Path(source_onnx).name, "config": asdict(cfg), **asdict(state)}, indent=1) + "\n")
+            {"source": Path(source_onnx).name, "start": start, "config": asdict(cfg),
+             **({"continued": continued} if continued else {}), **asdict(state)}, indent=1) + "\n")
         log(f"generation {gen}: score {J[0]:.4f} (candidates {J.min():.4f}-{J.max():.4f}); "
             + ", ".join(f"{g} {v['rate']:.3f} rad/s {v['fails']} failed" for g, v in rows[0].items())
             + f"; |residual| {np.linalg.norm(theta):.2f} sigma, {rec['wall_s']:.0f} s")
-    return export_refined(source_onnx, out_stem, np.asarray(state.params), cfg, state.history)
+    return export_refined(source_onnx, out_stem, np.asarray(state.params), cfg, state.history,
+                          continued)
 
 
 def _legs_of(source_onnx, leg: str) -> tuple[str, ...]:
@@ -332,10 +376,11 @@ def _legs_of(source_onnx, leg: str) -> tuple[str, ...]:
 
 
 def export_refined(source_onnx, out_stem, params: np.ndarray, cfg: RefineConfig,
-                   history: list[dict]) -> tuple[Path, Path]:
+                   history: list[dict], continued: dict | None = None) -> tuple[Path, Path]:
     """Write the refined policy: ONNX (checked against torch) and the source's JSON with
-    ``refined_from`` (source, commit, leg, the residual, the settings and each generation's
-    score) and its evaluation cleared."""
+    ``refined_from`` (source, commit, leg, the residual, the settings, each generation's
+    score and, for a continued refinement, ``continued_from``: the refined policy it went on
+    from, its generations and settings) and its evaluation cleared."""
     from deploy.policy import PolicyMeta
     from policy_train.export import git_commit, onnx_bytes
 
@@ -353,7 +398,8 @@ def export_refined(source_onnx, out_stem, params: np.ndarray, cfg: RefineConfig,
                    "projected_gravity x", "projected_gravity y"],
         "D": D.round(6).tolist(), "b": b.round(6).tolist(), "config": asdict(cfg),
         "generations": [{k: h[k] for k in ("generation", "seed", "score", "score_best",
-                                           "score_mean")} for h in history]}
+                                           "score_mean")} for h in history],
+        **({"continued_from": continued} if continued else {})}
     meta.update(name=name, onnx=f"{name}.onnx", commit=git_commit(), evaluation={},
                 created_utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
     meta.pop("evaluation_nominal", None)

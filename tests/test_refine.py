@@ -16,6 +16,7 @@ from policy_train.refine import (
     BlockRNG,
     RefineConfig,
     build_actor,
+    pack,
     paired_rollouts,
     refine,
     residual_columns,
@@ -23,6 +24,7 @@ from policy_train.refine import (
 )
 
 V21 = Path(__file__).resolve().parents[1] / "policies" / "tripod_go2_v21.onnx"
+V22 = V21.with_name("tripod_go2_v22.onnx")  # v21 refined 40 generations
 
 
 def test_block_rng_repeats_each_blocks_draws_and_passes_the_rest_through():
@@ -133,9 +135,40 @@ def test_refine_exports_resumes_and_is_no_warm_start(tmp_path):
         refine(json_path.with_suffix(".onnx"), tmp_path / "q", 1, cfg, state, resume=True)
 
 
+def test_a_refined_policy_goes_on_from_its_residual(tmp_path):
+    with pytest.raises(ValueError, match="FL's lifts, not RL's"):
+        refine(V22, tmp_path / "x", 1, RefineConfig(leg="RL"), tmp_path / "x.json")
+    with pytest.raises(ValueError, match="unknown randomisation"):
+        RefineConfig(dr={"shove": 1.0})
+    cfg = RefineConfig(pairs=1, episodes=1, fail_cost=0.5, dr={"push_vel": 0.5})
+    state, lines = tmp_path / "s.json", []
+    onnx_path, json_path = refine(V22, tmp_path / "r", 1, cfg, state, log=lines.append)
+    assert lines[0].startswith("generation 40: score")  # v22's 40 generations go on
+    saved = json.loads(state.read_text())
+    assert saved["source"] == V21.name and saved["start"] == V22.name
+    assert saved["history"][-1]["seed"] == 1040 and saved["config"]["dr"] == {"push_vel": 0.5}
+    rf22 = json.loads(V22.with_suffix(".json").read_text())["refined_from"]
+    moved = (np.asarray(saved["params"]) - pack(rf22["D"], rf22["b"])) / cfg.scales
+    np.testing.assert_allclose(np.linalg.norm(moved), cfg.step * np.sqrt(72), rtol=1e-5)
+    rf = json.loads(json_path.read_text())["refined_from"]
+    assert rf["policy"] == V21.name and len(rf["generations"]) == 41
+    assert rf["continued_from"]["policy"] == V22.name
+    assert rf["continued_from"]["generations"] == 40 and rf["continued_from"]["config"].get("dr", {}) == {}
+    # the export is v21's network under the new residual, as v22's was under its own
+    x = np.random.default_rng(1).normal(0, 0.3, (2, 490)).astype(np.float32)
+    x[:, 48::49] = 0.25
+    D, b = unpack(saved["params"])
+    got = ort.InferenceSession(str(onnx_path)).run(None, {"obs": x})[0]
+    src = ort.InferenceSession(str(V21)).run(None, {"obs": x})[0]
+    np.testing.assert_allclose(got, src + x[:, [3, 4, 5, 6, 7]] @ D.T + b, atol=1e-4)
+    with pytest.raises(ValueError, match="refines tripod_go2_v22"):
+        refine(V21, tmp_path / "q", 1, cfg, state, resume=True)
+
+
 @pytest.mark.parametrize(("extra", "hint"), [
     (["--leg", "FL,FR"], "one leg"), (["--leg", "XX"], "XX"), (["--pairs", "0"], "pairs"),
-    (["--resume", "--state", "nowhere.json"], "no state")])
+    (["--resume", "--state", "nowhere.json"], "no state"), (["--dr", "shove=1"], "FIELD"),
+    (["--fail-cost", "0"], "fail-cost")])
 def test_bad_refine_exits_with_one_line(extra, hint, tmp_path):
     p = subprocess.run([sys.executable, "-m", "policy_train.cli", "refine", str(V21), "--out",
                         str(tmp_path / "o"), "--generations", "1", *extra],
