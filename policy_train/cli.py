@@ -705,7 +705,8 @@ def main(argv: list[str] | None = None) -> int:
                 "transfer": _transfer,
                 "compare": _compare, "pack": _pack}[a.cmd](a)
     except (OSError, ValueError) as e:
-        print(f"a2i-train {a.cmd}: error: {str(e).splitlines()[0] if str(e) else e!r}",
+        # the first line of the message (an f-string's !r would quote the whole expression)
+        print(f"a2i-train {a.cmd}: error: {(str(e).splitlines() or [repr(e)])[0]}",
               file=sys.stderr)
         return 2
 

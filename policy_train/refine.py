@@ -360,7 +360,7 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
         state.history.append(rec)
         write_text_atomic(state_path, json.dumps(
             {"source": Path(source_onnx).name, "start": start, "config": asdict(cfg),
-             **({"continued": continued} if continued else {}), **asdict(state)}, indent=1) + "\n")
+             **asdict(state)}, indent=1) + "\n")
         log(f"generation {gen}: score {J[0]:.4f} (candidates {J.min():.4f}-{J.max():.4f}); "
             + ", ".join(f"{g} {v['rate']:.3f} rad/s {v['fails']} failed" for g, v in rows[0].items())
             + f"; |residual| {np.linalg.norm(theta):.2f} sigma, {rec['wall_s']:.0f} s")

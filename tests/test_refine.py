@@ -1,6 +1,6 @@
 """`a2i-train refine`: the residual acts only on the refined lift (and its mirror), every
-candidate of a generation plays the same episodes, and the refined policy exports, resumes and
-refuses to be warm-started as a plain network."""
+candidate of a generation plays the same episodes, and the refined policy exports, resumes,
+refuses to be warm-started as a plain network and can itself be refined further."""
 
 import json
 import subprocess
@@ -175,3 +175,4 @@ def test_bad_refine_exits_with_one_line(extra, hint, tmp_path):
                        capture_output=True, text=True, timeout=120, check=False)
     err = [line for line in p.stderr.splitlines() if "error" in line]
     assert p.returncode == 2 and len(err) == 1 and hint in err[0], p.stderr
+    assert "error: '" not in err[0] and 'error: "' not in err[0], p.stderr  # not a repr
