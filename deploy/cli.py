@@ -87,6 +87,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--periods", type=int, metavar="N",
                    help="override the policy's excitation periods (shorter runs; fewer "
                         "samples)")
+    p.add_argument("--no-replant", action="store_true",
+                   help="lift the next leg from where the last lift left the feet, without "
+                        "sitting down and standing up again in between (faster; only the first "
+                        "lift then starts from the stance the policy was evaluated from)")
     p.add_argument("--record-seconds", type=float, default=180.0, metavar="S",
                    help="recorder history kept in memory and saved as MCAP (default 180)")
     p.add_argument("--force", action="store_true",
@@ -97,7 +101,8 @@ def _parser() -> argparse.ArgumentParser:
 
 # "all" lifts the rear legs first. After a tripod the feet stay where its shift left them, and
 # the front lifts shift the body ~8 cm (rear ~2.4 cm): measured on the mock (seed 101), a rear
-# lift after both front ones tipped past 30 deg, while rear-first calibrated all four.
+# lift after both front ones tipped past 30 deg, while rear-first calibrated all four. REPLANT
+# (deploy/session.py) now starts every lift from a stand-up; the order stays for --no-replant.
 ALL_LEGS_ORDER: tuple[str, ...] = ("RL", "RR", "FL", "FR")
 
 
@@ -160,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from deploy.report import results_table
     from deploy.runtime import DeployConfig, DeployError, DeployRunner
+    from deploy.session import SessionConfig
 
     out_dir = Path(args.out)
     sim = None
@@ -189,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = DeployConfig(legs=legs, joystick=not legs, out_dir=out_dir, connect=[connect],
                        imus=imus, imu_protocol=args.imu_protocol, imu_baud=args.imu_baud,
                        clock=clock, record_seconds=args.record_seconds, force=args.force,
-                       truth=truth, session_metadata=session_meta, progress=_say)
+                       truth=truth, session_metadata=session_meta, progress=_say,
+                       session=SessionConfig(replant=not args.no_replant))
     runner = None
     try:
         try:

@@ -241,7 +241,9 @@ class DeployRunner:
         self._next_progress = 0.0
         self._jobs: list[SolveJob] = []
         self._worker: SolveWorker | None = None
-        self._imu_seen: tuple[str | None, int, int] = (None, 0, 0)
+        # the lifted leg's IMU: (leg, frames recorded, ticks without a new one, monotonic s of
+        # the last new one)
+        self._imu_seen: tuple[str | None, int, int, float] = (None, 0, 0, 0.0)
 
     # ------------------------------------------------------------------ callbacks
     def _on_transition(self, old: State, new: State, cause: str) -> None:
@@ -450,18 +452,25 @@ class DeployRunner:
 
     def _watch_imu(self) -> None:
         """A silent foot IMU of the leg being lifted is an error (port open, no frames: wrong
-        port, wrong protocol or baud, receiver off), found before SOLVE has nothing to use."""
+        port, wrong protocol or baud, receiver off), found before SOLVE has nothing to use.
+        Silent for ``imu_silence_s`` of ticks and of wall time both: in lockstep the ticks can
+        outrun the reader thread (two runs sharing two cores aborted lifts whose IMUs were
+        streaming)."""
         s = self.session
         leg = s.leg
         if leg is None or s.state not in (State.TRIPOD, State.CALIBRATE):
-            self._imu_seen = (None, 0, 0)
+            self._imu_seen = (None, 0, 0, 0.0)
             return
         n = self.recorder.ring(f"imu/{leg}").total_written
-        last_leg, last_n, quiet = self._imu_seen
-        quiet = quiet + 1 if (last_leg == leg and n == last_n) else 0
-        self._imu_seen = (leg, n, quiet)
+        last_leg, last_n, quiet, t_new = self._imu_seen
+        if last_leg == leg and n == last_n:
+            quiet += 1
+        else:
+            quiet, t_new = 0, time.monotonic()
+        self._imu_seen = (leg, n, quiet, t_new)
         limit = round(self.cfg.imu_silence_s / self.dt)
-        if quiet == limit:
+        if (quiet >= limit and time.monotonic() - t_new >= self.cfg.imu_silence_s
+                and leg not in self.imu_errors):
             port = next((i.port for i in self.cfg.imus if i.leg == leg), "?")
             with self._imu_err_lock:
                 self.imu_errors.setdefault(

@@ -19,7 +19,13 @@ States and their exits (every transition is reported with its cause)::
     SOLVE     stand hold while the solver runs on a worker (never in the loop). -> REPORT.
               Timeout ``solve_timeout_s`` -> REPORT with the error.
     REPORT    the outcome is published (once). -> TRIPOD(next leg), or STAND (joystick mode),
-              or SIT.
+              or SIT. -> REPLANT instead of TRIPOD once a leg has been lifted since the last
+              stand-up (also from STAND).
+    REPLANT   interpolation to the lying pose and a hold, the base down and the feet unloaded,
+              -> STAND, which stands up and starts the leg: after a lift the feet stay where
+              the tripod left them (friction; the stand holds its joints up to 0.3 rad off
+              the default pose) and a lift from there starts where the policy was never
+              evaluated. Off with ``SessionConfig.replant`` False.
     SIT       interpolation to the lying pose, then damping. -> DONE.
     DAMP      kp 0, kd ``damp_kd`` on every joint. Final after a fault; after L2+B in joystick
               mode, L2+A stands up again.
@@ -65,6 +71,7 @@ class State(enum.Enum):
     SIT = "SIT"
     DAMP = "DAMP"
     DONE = "DONE"
+    REPLANT = "REPLANT"  # last: a state's place in this list is its recorded event code
 
 
 @dataclass(frozen=True)
@@ -93,6 +100,11 @@ class SessionConfig:
     solve_timeout_s: float = 180.0
     sit_s: float = 2.0
     sit_hold_s: float = 0.5
+    # sit down and stand up again between lifts (REPLANT), so that every lift starts from the
+    # stand-up's stance, as the evaluation's do: without it a run of all four legs on the mock
+    # on a floor tilted 4 deg (front or left side down) tipped over lifting FL, third, from
+    # where RL and RR had left the feet, while FL lifted first held
+    replant: bool = True
     damp_kd: float = DAMP_KD
     # LowCmd_ frames per tick. The motors hold each frame's target, so a lifted leg whose
     # target moved once per 20 ms tick lagged its plan in a 20 ms staircase: at its kp 80 that
@@ -210,6 +222,7 @@ class Session:
         self._abort_to: np.ndarray | None = None
         self._requested: str | None = None
         self._current: LegOutcome | None = None
+        self._stance_used = False  # a leg was lifted since the last stand-up
         self.lie_pose = full_pose(LIE_POSE_LEG, order="sdk")
         self.phase = ""
         self.last_command: Command | None = None
@@ -288,6 +301,7 @@ class Session:
             if (self.user_damp and self.joystick and "stand" in combos
                     and inp.q is not None):
                 self.user_damp = False
+                self._stance_used = False  # damped, it lies down: the stand-up re-plants
                 self._prev_target = np.asarray(inp.q, dtype=float).copy()
                 self._start_interp(inp.q, self.meta.default_pose)
                 self._go(State.STAND, "operator: L2+A")
@@ -346,9 +360,13 @@ class Session:
             return cmd
         leg = None
         if self.queue:
+            if self._maybe_replant(self.queue[0]):
+                return cmd
             leg = self.queue.popleft()
             cause = f"next leg {leg}"
         elif self.joystick:
+            if self._requested is not None and self._maybe_replant(self._requested):
+                return cmd
             leg, self._requested = self._requested, None
             cause = f"operator: calibrate {leg}"
         else:
@@ -357,6 +375,24 @@ class Session:
             return cmd
         if leg is not None:
             self._start_tripod(leg, inp, cause)
+        return cmd
+
+    def _maybe_replant(self, leg: str) -> bool:
+        """Go to REPLANT (True) if ``leg``'s lift would start from a stance a lift left."""
+        if not (self.cfg.replant and self._stance_used):
+            return False
+        # from the hold's target, not the joints: the PD torque carries on without a step
+        self._start_interp(self._prev_target, self.lie_pose)
+        self._go(State.REPLANT, f"re-planting the feet before {leg}")
+        return True
+
+    def _replant(self, inp: TickInput, combos) -> Command:
+        c = self.cfg
+        cmd = self._pd(self._interp(c.sit_s), c.stand_kp, c.stand_kd, "replant")
+        if self.t_state >= c.sit_s + c.sit_hold_s:
+            self._stance_used = False
+            self._start_interp(self._prev_target, self.meta.default_pose)
+            self._go(State.STAND, "feet re-planted")
         return cmd
 
     def _start_tripod(self, leg: str, inp: TickInput, cause: str) -> None:
@@ -370,6 +406,7 @@ class Session:
             self.policy = self.policies[leg]
             self.meta = self.policy.meta
         self.policy.reset(inp.q)
+        self._stance_used = True
         self.phase = ""
         self._k_lift = self.k + 1  # the lift command is given at TRIPOD's first tick
         self._go(State.TRIPOD, cause)
@@ -607,8 +644,9 @@ class Session:
         self._current = None
         self.leg = None
         if self.queue:
-            leg = self.queue.popleft()
-            self._start_tripod(leg, inp, f"next leg {leg}")
+            if not self._maybe_replant(self.queue[0]):
+                leg = self.queue.popleft()
+                self._start_tripod(leg, inp, f"next leg {leg}")
         elif self.joystick:
             self._prev_target = cmd.q.copy()
             self._start_interp(inp.q, self.meta.default_pose)

@@ -12,7 +12,7 @@
                  [--nominal | --dr-off GROUP[,GROUP] --dr FIELD=VALUE ...]
                  [--randomisation standard|training]
   a2i-train transfer policies/NAME.onnx [--scenarios training,heavy,...] [--episodes 20]
-                 [--legs FL,FR,RL,RR] [--out docs/results/policy_transfer.md]
+                 [--legs FL,FR,RL,RR] [--out docs/results/policy_transfer.md] [--append]
                                    (the calibration re-run on sim.go2 under perturbations)
   a2i-train compare A.json B.json  (two transfer runs on the same draws, episode by episode)
   a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD]
@@ -227,12 +227,29 @@ def _refine(a) -> int:
 
 
 def _transfer(a) -> int:
-    from policy_train.transfer import SCENARIOS, summarise, timed_run, write_results
+    from policy_train.transfer import (
+        SCENARIOS,
+        load_results,
+        merge_results,
+        summarise,
+        timed_run,
+        write_results,
+    )
 
     if a.list:
         for s in SCENARIOS.values():
             print(f"{s.name:15s} {s.description}")
         return 0
+    page = None
+    if a.append:  # checked before the run: a page it cannot join is refused at once
+        import json
+
+        from calib.joints import LEGS
+
+        page = load_results(Path(a.out).with_suffix(".json"))
+        run_legs = a.legs or json.loads(Path(a.onnx).with_suffix(".json").read_text()).get(
+            "legs", list(LEGS))
+        merge_results(page, [], a.onnx, a.seed, run_legs, a.episodes)
     n = a.episodes * len(a.scenarios) * len(a.legs or (1, 1, 1, 1))
     print(f"transfer: {a.onnx}, scenarios {', '.join(a.scenarios)}, about {n} episodes",
           flush=True)
@@ -244,6 +261,9 @@ def _transfer(a) -> int:
               f"{x['rate_rms']:.3f} rad/s, tilt {x['tilt_rms_deg']:.2f} deg, CN p90 "
               f"{x['cn_p90']:.3f}")
     if not a.no_write:
+        if page is not None:
+            res = merge_results(page, res, a.onnx, a.seed, run_legs, a.episodes)
+            elapsed += page[0]["elapsed_s"] or 0.0
         write_results(res, a.out, a.onnx, a.seed, elapsed)
         print(f"wrote {a.out} and {Path(a.out).with_suffix('.json')}")
     return 0
@@ -670,6 +690,9 @@ def main(argv: list[str] | None = None) -> int:
     x.add_argument("--no-write", action="store_true", help="print only")
     x.add_argument("--out", default="docs/results/policy_transfer.md",
                    help="markdown page; the episodes go beside it as .json")
+    x.add_argument("--append", action="store_true",
+                   help="add these scenarios to the page at --out (the same policy, seed, legs "
+                        "and episodes), replacing its rows of them")
     c = sub.add_parser("compare", help="two transfer runs of the same seed, paired episode by "
                                        "episode (which policy holds more of the same draws)")
     c.add_argument("episodes_files", nargs=2, metavar="EPISODES_JSON",
@@ -693,6 +716,8 @@ def main(argv: list[str] | None = None) -> int:
         p.error("--dr-off and --dr need the randomisation on: drop --nominal")
     if a.cmd == "transfer" and a.onnx is None and not a.list:
         p.error("transfer needs the policy's .onnx (or --list)")
+    if a.cmd == "transfer" and a.append and a.no_write:
+        p.error("--append writes the page: it cannot go with --no-write")
     if a.cmd == "transfer" and a.scenarios is None:
         from policy_train.transfer import SCENARIOS
 

@@ -17,8 +17,8 @@ with a :class:`Scenario`'s perturbations drawn afresh per episode:
 * the others: ``training`` with one thing outside its ranges (a heavier payload, a slipperier
   floor, a longer latency, weaker motors, harder pushes, twice the sensor noise), or not
   modelled in training at all (joint dry friction; MuJoCo Menagerie's Go2 joint model, whose
-  damping, rotor inertia and dry friction a checker's own simulation may well carry), or
-  without the sensor noise.
+  damping, rotor inertia and dry friction a checker's own simulation may well carry; a floor
+  that is not level), or without the sensor noise.
 
 An episode succeeds as the evaluation's do: no fall over the whole run, and over the hold and
 the excitation no body but a foot on the floor and the lifted foot never down
@@ -47,6 +47,7 @@ from sim.effects import (
     ActuationLatency,
     Armature,
     CoulombFriction,
+    FloorSlope,
     FootFriction,
     LinkMass,
     MotorStrength,
@@ -54,8 +55,8 @@ from sim.effects import (
 )
 
 __all__ = ["SCENARIOS", "EpisodeResult", "PairedScenario", "Scenario", "compare",
-           "load_results", "render_comparison", "render_markdown", "run_episode", "run_transfer",
-           "summarise", "timed_run", "write_results"]
+           "load_results", "merge_results", "render_comparison", "render_markdown", "run_episode",
+           "run_transfer", "summarise", "timed_run", "write_results"]
 
 BASE_MASS_KG = 7.277
 """Mass of the base body of :mod:`sim.go2`'s model, kg (a payload of m kg scales it by
@@ -72,7 +73,8 @@ class Scenario:
     every motor's torque. latency_s: actuation latency, s. joint_friction: Coulomb friction, N m,
     on every joint. joint_damping: viscous friction, N m s/rad, and armature: rotor inertia,
     kg m^2, on every joint. noise_scale: times the training's observation noise (0: none). push_vel:
-    m/s of the pushes (0: none), every 4-8 s.
+    m/s of the pushes (0: none), every 4-8 s. floor_slope: rad the floor is tilted, descending
+    towards a direction drawn uniformly (the robot starts standing on it).
     """
 
     name: str
@@ -87,6 +89,7 @@ class Scenario:
     armature: tuple[float, float] | None = None
     noise_scale: float = 0.0
     push_vel: float = 0.0
+    floor_slope: tuple[float, float] | None = None
 
     def draw(self, rng: np.random.Generator):
         """This episode's effects (fresh :mod:`sim.effects` objects) and
@@ -114,6 +117,8 @@ class Scenario:
             effects.append(ViscousFriction(u(self.joint_damping)))
         if self.armature is not None:
             effects.append(Armature(u(self.armature)))
+        if self.floor_slope is not None:
+            effects.append(FloorSlope(u(self.floor_slope), rng.uniform(-math.pi, math.pi)))
         dr = DRConfig()
         noise = {fld: self.noise_scale * getattr(dr, fld) for _, fld in OBS_NOISE}
         dist = Disturbance(**noise, push_vel=self.push_vel, push_interval=dr.push_interval,
@@ -151,6 +156,8 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
     _training_like("damped_joints", "training on MuJoCo Menagerie's Go2 joints: damping 2 N m s/rad, "
                    "armature 0.01 kg m^2, dry friction 0.2 N m (none in the standard ranges)",
                    joint_damping=(2.0, 2.0), armature=(0.01, 0.01), joint_friction=(0.2, 0.2)),
+    _training_like("slope", "training on a floor tilted 2-5 deg, downhill any way (not in the "
+                   "standard ranges)", floor_slope=(math.radians(2.0), math.radians(5.0))),
 ]}
 
 
@@ -277,10 +284,11 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
     summ = summarise(results)
     legs = list(dict.fromkeys(r.leg for r in results))
     n = max(1, len(results) // max(1, len(summ) * len(legs)))
+    leg_arg = "" if legs == list(LEGS) else f" --legs {','.join(legs)}"
     lines = [
         "# Tripod policy transfer: a second simulator, perturbations not trained for",
         "",
-        (f"Produced by `a2i-train transfer {policy} --episodes {n} --seed {seed}` "
+        (f"Produced by `a2i-train transfer {policy} --episodes {n} --seed {seed}{leg_arg}` "
         "(`policy_train/transfer.py`): each episode is one calibration of one leg by the "
         "on-board runner on `sim.go2` (1 kHz, free base on the floor: the mock robot's "
         "simulator, not the training environment), with the scenario's perturbations drawn "
@@ -349,6 +357,27 @@ def load_results(path) -> tuple[dict, list[EpisodeResult]]:
     except (KeyError, TypeError, json.JSONDecodeError) as e:
         raise ValueError(f"{path}: not a transfer episodes file ({e})") from None
     return meta, eps
+
+
+def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResult],
+                  policy: str, seed: int, legs, episodes: int) -> list[EpisodeResult]:
+    """A page's episodes (:func:`load_results`) with ``new``'s scenarios added or replaced, in
+    :data:`SCENARIOS`' order: the page one command over every scenario would have written, since
+    an episode's draws depend only on the seed, its scenario, leg and number. ValueError unless
+    the page has this policy, seed, legs and episodes per leg and scenario."""
+    meta, old = page
+    old_legs = list(dict.fromkeys(r.leg for r in old))
+    per = {(r.scenario, r.leg) for r in old}
+    old_n = len(old) // max(1, len(per))
+    for what, was, now in (("policy", meta["policy"], policy), ("seed", meta["seed"], seed),
+                           ("legs", ",".join(old_legs), ",".join(legs)),
+                           ("episodes", old_n, episodes)):
+        if was != now:
+            raise ValueError(f"the page has {what} {was}, not {now}: write a new page")
+    redone = {r.scenario for r in new}
+    order = {name: i for i, name in enumerate(SCENARIOS)}
+    kept = [r for r in old if r.scenario not in redone]
+    return sorted(kept + list(new), key=lambda r: order.get(r.scenario, len(order)))
 
 
 @dataclass(frozen=True)

@@ -144,7 +144,7 @@ class MotorStrength(Effect):
 EFFECT_NAMES: tuple[str, ...] = (
     "latency", "motor_strength", "coulomb_friction", "viscous_friction", "armature", "backlash",
     "link_mass", "foot_friction", "torque_limit", "imu_bias", "imu_misalignment",
-    "imu_time_offset", "packet_loss",
+    "imu_time_offset", "packet_loss", "floor_slope",
 )
 
 ActuationLatency.name = "latency"
@@ -324,6 +324,46 @@ class FootFriction(Effect):
         return f"FootFriction({self.mu!r})"
 
 
+class FloorSlope(Effect):
+    """The floor tilted by ``angle`` rad (0 <= angle < 0.5), descending towards ``azimuth``
+    (rad from the world x axis towards y), about a horizontal axis through the world origin.
+    ``Go2Sim.reset`` places the robot on the level floor; this effect's reset then turns it with
+    the floor about the origin, so it starts standing on the slope as it would on the level
+    (every foot on the floor, the base tilted by ``angle`` from the vertical). Gravity stays
+    world -z, so the IMU and the base tilt read the slope as a real robot's would. Free base
+    only."""
+
+    name = "floor_slope"
+
+    def __init__(self, angle: float, azimuth: float = 0.0) -> None:
+        a, z = float(angle), float(azimuth)
+        if not (np.isfinite(a) and 0.0 <= a < 0.5 and np.isfinite(z)):
+            raise ValueError(f"floor slope must be finite and in [0, 0.5) rad, got {angle!r} "
+                             f"(azimuth {azimuth!r})")
+        self.angle, self.azimuth = a, z
+        axis = np.array([-np.sin(z), np.cos(z), 0.0])  # z x (the downhill direction)
+        self.quat_wxyz = np.r_[np.cos(a / 2), np.sin(a / 2) * axis]
+        self.rotation = np.zeros(9)
+        mujoco.mju_quat2Mat(self.rotation, self.quat_wxyz)
+        self.rotation = self.rotation.reshape(3, 3)
+
+    def modify_spec(self, spec: mujoco.MjSpec) -> None:
+        floors = [g for g in spec.geoms if g.name == "floor"]
+        if not floors:
+            raise ValueError("a floor slope needs the model's floor (SimConfig(floor=True))")
+        floors[0].quat = self.quat_wxyz
+
+    def reset(self, sim: Go2Sim) -> None:
+        if sim.config.base != "free":
+            raise ValueError("a floor slope needs a free base")
+        q = np.zeros(4)
+        mujoco.mju_mulQuat(q, self.quat_wxyz, sim.base_quat_wxyz)
+        sim.set_base_state(self.rotation @ sim.base_pos, q)
+
+    def __repr__(self) -> str:
+        return f"FloorSlope({self.angle!r}, azimuth={self.azimuth!r})"
+
+
 class TorqueLimit(Effect):
     """Torque saturation below the URDF effort limit, with voltage sag: the motor delivers at
     most ``limit - droop * |dq|`` N m (>= 0) on the selected joints (droop N m s/rad models the
@@ -477,7 +517,8 @@ def apply_imu_effects(effects, t, gyro, accel, quat_wxyz):
 
 
 __all__ += [
-    "EFFECT_NAMES", "Armature", "Backlash", "CoulombFriction", "FootFriction", "ImuBias",
+    "EFFECT_NAMES", "Armature", "Backlash", "CoulombFriction", "FloorSlope", "FootFriction",
+    "ImuBias",
     "ImuEffect", "ImuMisalignment", "ImuTimeOffset", "LinkMass", "PacketLoss", "TorqueLimit",
     "ViscousFriction", "apply_imu_effects",
 ]

@@ -43,7 +43,7 @@ class FakeJob:
 class Rig:
     """A session plus a perfect robot: q follows the commanded targets one tick later."""
 
-    def __init__(self, meta_path, legs=("FL",), joystick=False):
+    def __init__(self, meta_path, legs=("FL",), joystick=False, config=CFG):
         meta = PolicyMeta.load(meta_path)
         for leg in legs or ("FL",):
             meta.schedule.plan(leg)
@@ -53,7 +53,7 @@ class Rig:
         self.reports = []
         self.solves = []
         self.s = Session(PolicyRunner(meta), sup, 0.02, self._solve, legs=legs,
-                         joystick=joystick, config=CFG,
+                         joystick=joystick, config=config,
                          on_transition=lambda a, b, c: self.transitions.append((a, b, c)),
                          on_report=self.reports.append)
         self.q = full_pose(LIE_POSE_LEG, order="sdk")
@@ -240,9 +240,25 @@ def test_imu_failure_aborts_lowers_and_reports_without_solving(meta_paths):
 
 def test_two_legs_in_turn(meta_paths):
     rig = Rig(meta_paths[0], legs=("FR", "RL"))
+    rig.run_until(State.REPORT)
+    hold = rig.tick()  # REPORT holds the default pose, then re-plants for RL
+    assert rig.s.state is State.REPLANT and rig.transitions[-1][2] == ("re-planting the feet "
+                                                                       "before RL")
+    first = rig.tick()
+    assert np.abs(first.q - hold.q).max() < 0.05  # from the hold's target: no torque step
+    rig.run_until(State.STAND)
+    np.testing.assert_allclose(rig.q, rig.s.lie_pose, atol=1e-9)  # sat all the way down
     rig.run_until(State.DONE)
     assert [leg for leg, _ in rig.solves] == ["FR", "RL"]
-    assert rig.states.count(State.TRIPOD) == 2 and rig.states.count(State.REPORT) == 2
+    assert rig.states == [State.STAND, State.TRIPOD, State.CALIBRATE, State.LOWER, State.STAND,
+                          State.SOLVE, State.REPORT, State.REPLANT, State.STAND, State.TRIPOD,
+                          State.CALIBRATE, State.LOWER, State.STAND, State.SOLVE, State.REPORT,
+                          State.SIT, State.DONE]
+    # without re-planting the next lift starts from the stance the last one left
+    rig = Rig(meta_paths[0], legs=("FR", "RL"), config=SessionConfig(
+        **{**CFG.__dict__, "replant": False}))
+    rig.run_until(State.DONE)
+    assert State.REPLANT not in rig.states and rig.states.count(State.TRIPOD) == 2
 
 
 def test_joystick_mode(meta_paths):
@@ -261,6 +277,14 @@ def test_joystick_mode(meta_paths):
     assert rig.s.leg == "RR"
     rig.tick()
     assert rig.s.state is State.STAND  # back to waiting, not sitting
+    for _ in range(60):
+        rig.tick()
+    rig.tick(combos=("calibrate_FL",))  # a second lift: re-planted first
+    rig.run_until(State.TRIPOD)
+    assert rig.states[-3:] == [State.REPLANT, State.STAND, State.TRIPOD] and rig.s.leg == "FL"
+    rig.run_until(State.REPORT)
+    rig.tick()
+    assert rig.s.state is State.STAND
     rig.tick(combos=("damp",))
     assert rig.s.state is State.DAMP and not rig.s.finished  # the operator can stand again
     rig.tick(combos=("stand",))

@@ -11,6 +11,7 @@ from sim.effects import (
     Armature,
     Backlash,
     CoulombFriction,
+    FloorSlope,
     FootFriction,
     ImuBias,
     ImuMisalignment,
@@ -23,6 +24,7 @@ from sim.effects import (
     apply_imu_effects,
 )
 from sim.go2 import Go2Sim, SimConfig, stand_pose
+from sim.model import FOOT_RADIUS
 
 CALF = 2  # FL_calf, model order
 
@@ -49,7 +51,7 @@ def _step_target():
 def test_names_and_classes():
     for cls in (ActuationLatency, MotorStrength, CoulombFriction, ViscousFriction, Armature,
                 Backlash, LinkMass, FootFriction, TorqueLimit, PacketLoss, ImuBias,
-                ImuMisalignment, ImuTimeOffset):
+                ImuMisalignment, ImuTimeOffset, FloorSlope):
         assert cls.name in EFFECT_NAMES
 
 
@@ -122,6 +124,31 @@ def test_foot_friction_sets_the_floor_and_feet():
     m = sim.model
     assert m.geom_friction[m.geom("floor").id][0] == pytest.approx(0.3)
     assert m.geom_friction[m.geom("FL_foot").id][0] == pytest.approx(0.3)
+
+
+@pytest.mark.parametrize("azimuth", [0.0, 2.0, -1.2])
+def test_floor_slope_tilts_the_floor_and_starts_the_robot_standing_on_it(azimuth):
+    angle = np.radians(4.0)
+    sim = Go2Sim(SimConfig(base="free", effects=[FloorSlope(angle, azimuth)]))
+    m = sim.model
+    normal = sim.data.geom_xmat[m.geom("floor").id].reshape(3, 3)[:, 2]
+    downhill = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
+    assert np.degrees(np.arccos(normal[2])) == pytest.approx(4.0)
+    assert normal @ downhill == pytest.approx(np.sin(angle))  # the floor falls away that way
+    # every foot sphere rests on the tilted plane, and the base leans with it
+    np.testing.assert_allclose(sim.foot_positions @ normal, FOOT_RADIUS, atol=1e-9)
+    assert sim.base_tilt == pytest.approx(angle)
+    level = Go2Sim(SimConfig(base="free"))
+    assert sim.base_pos @ normal == pytest.approx(level.base_pos[2])  # as high over the floor
+    sim.reset()  # a reset puts it back on the slope
+    np.testing.assert_allclose(sim.foot_positions @ normal, FOOT_RADIUS, atol=1e-9)
+    for bad in (-0.1, 0.5, np.nan):
+        with pytest.raises(ValueError):
+            FloorSlope(bad)
+    with pytest.raises(ValueError, match="free base"):
+        Go2Sim(SimConfig(base="fixed", effects=[FloorSlope(0.05)]))
+    with pytest.raises(ValueError, match="floor"):
+        Go2Sim(SimConfig(base="free", floor=False, effects=[FloorSlope(0.05)]))
 
 
 def test_imu_effects_transform_readings():

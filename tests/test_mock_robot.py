@@ -471,6 +471,9 @@ def test_config_files_and_errors(tmp_path):
         ("imu_ports: shared\n", "one 921600-baud port"),
         ("joystick: [[0.5, L9, 0.2]]\n", "unknown key 'L9'"),
         ("lockstep_quantum_s: 0.003\n", "whole number"),
+        ("floor_slope_deg: 30\n", "floor_slope_deg"),
+        ("floor_slope_deg: 3\nbase: fixed\n", "needs base: free"),
+        ("floor_slope_azimuth_deg: .nan\n", "floor_slope_azimuth_deg"),
         ("foot_imus: {FL: {rotation_matrix: [[1, 0, 0], [0, 1, 0], [0, 0, -1]]}}\n",
          "proper rotation"),
         ("[1, 2]\n", "mapping"),
@@ -485,6 +488,20 @@ def test_config_files_and_errors(tmp_path):
     # shared port fits at 4 x 200 Hz
     y.write_text("imu_ports: shared\nfoot_imus: {all: {rate_hz: 200}}\n")
     assert load_config(y).imu_ports == "shared"
+
+
+def test_a_sloped_floor_is_what_the_body_imu_reports():
+    """The lying robot starts on the tilted floor: its lowstate IMU reads the slope (roll for a
+    floor falling away to the side, here +y: the left side down)."""
+    got = []
+    cfg = MockConfig(listen=[], clock="lockstep", foot_imus=NO_IMUS, floor_slope_deg=6.0,
+                     floor_slope_azimuth_deg=90.0)
+    with MockRobot(cfg, transport=False, on_lowstate=lambda d, t: got.append(d)) as robot:
+        robot.advance(0.0)
+        v = decode_lowstate(got[-1])
+        assert np.degrees(robot.sim.base_tilt) == pytest.approx(6.0, abs=1e-3)
+    roll, pitch, _ = np.degrees(v.rpy)
+    assert roll == pytest.approx(-6.0, abs=0.05) and abs(pitch) < 0.05
 
 
 def test_shared_port_carries_all_nodes():

@@ -21,6 +21,7 @@ from policy_train.transfer import (
     SCENARIOS,
     EpisodeResult,
     compare,
+    merge_results,
     render_markdown,
     run_episode,
     summarise,
@@ -30,6 +31,7 @@ from sim.effects import (
     ActuationLatency,
     Armature,
     CoulombFriction,
+    FloorSlope,
     FootFriction,
     LinkMass,
     MotorStrength,
@@ -66,6 +68,9 @@ def test_training_scenario_draws_the_training_ranges():
     joint = {type(e): float(np.unique(e.value).item()) for e in effects
              if isinstance(e, (ViscousFriction, Armature, CoulombFriction))}
     assert joint == {ViscousFriction: 2.0, Armature: 0.01, CoulombFriction: 0.2}  # Menagerie's
+    slopes = [e for e in SCENARIOS["slope"].draw(np.random.default_rng(0))[0]
+              if isinstance(e, FloorSlope)]
+    assert len(slopes) == 1 and np.radians(2) <= slopes[0].angle <= np.radians(5)
     assert SCENARIOS["quiet"].draw(np.random.default_rng(0))[1].noise_joint_vel == 0.0
     assert SCENARIOS["noisy"].draw(np.random.default_rng(0))[1].noise_joint_vel == 2 * 1.5
     effects, dist = SCENARIOS["nominal"].draw(np.random.default_rng(0))
@@ -81,6 +86,7 @@ def test_scenarios_keep_their_places():
     # policies are paired with new runs (compare) only while the places stay put
     assert list(SCENARIOS)[:11] == ["nominal", "training", "heavy", "slippery", "late", "weak",
                                     "joint_friction", "shoves", "noisy", "quiet", "damped_joints"]
+    assert list(SCENARIOS)[11:] == ["slope"]
 
 
 def test_disturbance_noise_is_bounded_and_only_on_sensed_terms():
@@ -159,6 +165,33 @@ def test_cli_writes_page_and_episodes(tmp_path, capsys):
     assert "| nominal |" in page and "RR" in page
     rows = json.loads(out.with_suffix(".json").read_text())["episodes"]
     assert len(rows) == 1 and rows[0]["leg"] == "RR" and rows[0]["success"] is True
+    assert f"`a2i-train transfer {POLICY} --episodes 1 --seed 1 --legs RR`" in page
+    # a scenario added to the page: both rows, as one command over both would write them
+    rc = main(["transfer", str(POLICY), "--scenarios", "slope", "--legs", "RR", "--episodes",
+               "1", "--workers", "1", "--out", str(out), "--append"])
+    assert rc == 0
+    rows = json.loads(out.with_suffix(".json").read_text())["episodes"]
+    assert [r["scenario"] for r in rows] == ["nominal", "slope"]
+    assert "| nominal |" in out.read_text() and "| slope |" in out.read_text()
+    # a page of another seed is refused before anything runs
+    rc = main(["transfer", str(POLICY), "--scenarios", "slope", "--legs", "RR", "--episodes",
+               "1", "--seed", "2", "--out", str(out), "--append"])
+    assert rc == 2 and "the page has seed 1, not 2" in capsys.readouterr().err
+
+
+def test_merge_results_adds_and_replaces_scenarios_in_their_order():
+    old = _run({"weak": [True, False], "training": [True, True]})
+    page = ({"policy": "p.onnx", "seed": 1, "elapsed_s": 10.0}, old)
+    new = _run({"nominal": [False, False], "weak": [True, True]})
+    merged = merge_results(page, new, "p.onnx", 1, ["FL"], 2)
+    assert [(r.scenario, r.success) for r in merged] == [
+        ("nominal", False), ("nominal", False), ("training", True), ("training", True),
+        ("weak", True), ("weak", True)]
+    for args, what in [(("q.onnx", 1, ["FL"], 2), "policy"), (("p.onnx", 2, ["FL"], 2), "seed"),
+                       (("p.onnx", 1, ["FL", "RR"], 2), "legs"),
+                       (("p.onnx", 1, ["FL"], 3), "episodes")]:
+        with pytest.raises(ValueError, match=f"the page has {what}"):
+            merge_results(page, new, *args)
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -116,6 +116,8 @@ class MockConfig:
     tick_epoch_s: float = 1.0
     base: str = "free"
     initial_pose: str = "lying"
+    floor_slope_deg: float = 0.0
+    floor_slope_azimuth_deg: float = 0.0
     seed: int = 0
     imu_ports: str = "per_leg"
     imu_baud: int = 921600
@@ -165,6 +167,16 @@ class MockConfig:
             raise ValueError(f"base must be 'free' or 'fixed', got {self.base!r}")
         if self.initial_pose not in POSES:
             raise ValueError(f"initial_pose must be one of {POSES}, got {self.initial_pose!r}")
+        if not (isinstance(self.floor_slope_deg, int | float)
+                and 0 <= self.floor_slope_deg < math.degrees(0.5)):
+            raise ValueError(f"floor_slope_deg must be in [0, {math.degrees(0.5):.1f}), got "
+                             f"{self.floor_slope_deg!r}")
+        if not (isinstance(self.floor_slope_azimuth_deg, int | float)
+                and math.isfinite(self.floor_slope_azimuth_deg)):
+            raise ValueError(f"floor_slope_azimuth_deg must be a finite number, got "
+                             f"{self.floor_slope_azimuth_deg!r}")
+        if self.floor_slope_deg and self.base != "free":
+            raise ValueError("a floor slope needs base: free")
         if self.imu_ports not in IMU_PORT_MODES:
             raise ValueError(f"imu_ports must be one of {IMU_PORT_MODES}, got {self.imu_ports!r}")
         for name in ("physics_hz", "lowstate_hz", "wireless_hz", "lockstep_quantum_s",
