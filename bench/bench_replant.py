@@ -98,7 +98,8 @@ def main(argv=None) -> int:
     p.add_argument("--slopes", type=_floats, default=[0.0, 3.0, 5.0], help="deg")
     p.add_argument("--azimuths", type=_floats, default=[0.0, 90.0, 180.0, 270.0], help="deg")
     # one at a time: in lockstep the foot IMUs' frames are read by a thread and stamped on the
-    # host clock, and two runs on two cores starved it (legs refused on flat ground)
+    # host clock; two runs on two cores starved it (legs lost on flat ground, before the
+    # silence check needed wall time too) and moved the solver's figures
     p.add_argument("--workers", type=int, default=1)
     p.add_argument("--out", default=None, help="markdown table (default: print only)")
     a = p.parse_args(argv)
