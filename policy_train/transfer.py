@@ -48,6 +48,7 @@ from sim.effects import (
     Armature,
     CoulombFriction,
     FloorSlope,
+    FloorSoftness,
     FootFriction,
     LinkMass,
     MotorStrength,
@@ -74,7 +75,9 @@ class Scenario:
     on every joint. joint_damping: viscous friction, N m s/rad, and armature: rotor inertia,
     kg m^2, on every joint. noise_scale: times the training's observation noise (0: none). push_vel:
     m/s of the pushes (0: none), every 4-8 s. floor_slope: rad the floor is tilted, descending
-    towards a direction drawn uniformly (the robot starts standing on it).
+    towards a direction drawn uniformly (the robot starts standing on it). floor_timeconst: s,
+    the floor contacts' solref time constant (MuJoCo's default 0.02; larger: a floor that
+    gives, the feet sinking into it).
     """
 
     name: str
@@ -90,6 +93,7 @@ class Scenario:
     noise_scale: float = 0.0
     push_vel: float = 0.0
     floor_slope: tuple[float, float] | None = None
+    floor_timeconst: tuple[float, float] | None = None
 
     def draw(self, rng: np.random.Generator):
         """This episode's effects (fresh :mod:`sim.effects` objects) and
@@ -119,6 +123,8 @@ class Scenario:
             effects.append(Armature(u(self.armature)))
         if self.floor_slope is not None:
             effects.append(FloorSlope(u(self.floor_slope), rng.uniform(-math.pi, math.pi)))
+        if self.floor_timeconst is not None:
+            effects.append(FloorSoftness(u(self.floor_timeconst)))
         dr = DRConfig()
         noise = {fld: self.noise_scale * getattr(dr, fld) for _, fld in OBS_NOISE}
         dist = Disturbance(**noise, push_vel=self.push_vel, push_interval=dr.push_interval,
@@ -158,13 +164,18 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
                    joint_damping=(2.0, 2.0), armature=(0.01, 0.01), joint_friction=(0.2, 0.2)),
     _training_like("slope", "training on a floor tilted 2-5 deg, downhill any way (not in the "
                    "standard ranges)", floor_slope=(math.radians(2.0), math.radians(5.0))),
+    _training_like("soft_floor", "training on a floor that gives: contact time constant "
+                   "0.03-0.045 s, feet sinking 4-11 mm standing (not in the standard ranges)",
+                   floor_timeconst=(0.03, 0.045)),
 ]}
 
 
 @dataclass
 class EpisodeResult:
     """One transfer episode. Figures over the excitation (NaN if it failed): tilt_rms_deg,
-    rate_rms (rad/s), track_rmse (rad), cn. causes: what failed (empty on success)."""
+    rate_rms (rad/s), track_rmse (rad), cn. causes: what failed (empty on success).
+    calf_reach_mm: for each leg whose calf touched the floor, the farthest such contact from its
+    foot centre, mm (:class:`sim.free_base_run.RunHealth`)."""
 
     scenario: str
     leg: str
@@ -175,6 +186,7 @@ class EpisodeResult:
     rate_rms: float = float("nan")
     track_rmse: float = float("nan")
     cn: float = float("nan")
+    calf_reach_mm: dict[str, float] = field(default_factory=dict)
 
 
 TOP_CAUSES = 6
@@ -201,7 +213,8 @@ def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed
     if h.lifted_foot_touched:
         causes.append("lifted foot down")
     causes += [f"{b} on floor" for b in h.body_contacts if b != "base"]
-    res = EpisodeResult(scenario.name, leg, episode, not causes, causes)
+    res = EpisodeResult(scenario.name, leg, episode, not causes, causes,
+                        calf_reach_mm=dict(h.calf_reach_mm))
     if causes:
         return res
     ramp = 1.0  # the excitation's lead-in / lead-out (calib.excitation.ExcitationConfig.ramp)
@@ -252,16 +265,22 @@ def _rms(xs) -> float:
 
 def summarise(results: list[EpisodeResult]) -> dict:
     """{scenario: {"legs": {leg: success rate}, "success", "tilt_rms_deg", "rate_rms",
-    "track_rmse", "cn_median", "cn_p90", "causes": {cause: episodes}}}; pooled over legs,
-    the figures over the successful episodes (RMS figures pooled as RMS)."""
+    "track_rmse", "cn_median", "cn_p90", "causes": {cause: episodes}, "calf_reach_mm":
+    {cause: mm}}}; pooled over legs, the figures over the successful episodes (RMS figures
+    pooled as RMS); calf_reach_mm: for each calf cause, the farthest from its foot centre that
+    calf touched, over the episodes that recorded it."""
     out = {}
     for s in dict.fromkeys(r.scenario for r in results):
         rs = [r for r in results if r.scenario == s]
         ok = [r for r in rs if r.success]
         causes: dict[str, int] = {}
+        reach: dict[str, float] = {}
         for r in rs:
             for c in r.causes:
                 causes[c] = causes.get(c, 0) + 1
+            for g, mm in r.calf_reach_mm.items():
+                c = f"{g}_calf on floor"
+                reach[c] = max(reach.get(c, 0.0), mm)
         cn = [r.cn for r in ok]
         out[s] = {
             "legs": {g: float(np.mean([r.success for r in rs if r.leg == g]))
@@ -274,6 +293,7 @@ def summarise(results: list[EpisodeResult]) -> dict:
             "cn_median": float(np.median(cn)) if cn else float("nan"),
             "cn_p90": float(np.percentile(cn, 90)) if cn else float("nan"),
             "causes": dict(sorted(causes.items(), key=lambda kv: -kv[1])),
+            "calf_reach_mm": reach,
         }
     return out
 
@@ -297,7 +317,10 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
         "pooled over legs; the evaluation's targets: success 99 %, tilt 3 deg, rate 0.1 rad/s, "
         "tracking 0.05 rad, CN 1.2. Failures: in how many episodes each thing happened (an "
         "episode that tips over counts a fall and every body that touched the floor; the "
-        f"commonest {TOP_CAUSES}; the `.json` beside this page has every episode)."),
+        f"commonest {TOP_CAUSES}; the `.json` beside this page has every episode). A calf's "
+        "figure in brackets, where recorded: the farthest from its foot centre that it touched, "
+        "mm (up to 30 mm is the calf's lower end, which wraps the top of the foot; the knee is "
+        "213 mm up)."),
         "",
         (f"| scenario | what | episodes | success | {' / '.join(legs)} | tilt RMS deg | "
          "rate RMS rad/s | tracking rad | CN median (p90) | failures |"),
@@ -306,7 +329,9 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
     for s, x in summ.items():
         per_leg = " / ".join(f"{100 * x['legs'].get(g, float('nan')):.0f}" for g in legs)
         top = list(x["causes"].items())[:TOP_CAUSES]
-        causes = ", ".join(f"{c} {k}" for c, k in top) or "-"
+        causes = ", ".join(f"{c} {k}" + (f" ({x['calf_reach_mm'][c]:.0f} mm)"
+                                         if c in x["calf_reach_mm"] else "")
+                           for c, k in top) or "-"
         if len(x["causes"]) > TOP_CAUSES:
             causes += ", ..."
         lines.append(

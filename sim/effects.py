@@ -144,7 +144,7 @@ class MotorStrength(Effect):
 EFFECT_NAMES: tuple[str, ...] = (
     "latency", "motor_strength", "coulomb_friction", "viscous_friction", "armature", "backlash",
     "link_mass", "foot_friction", "torque_limit", "imu_bias", "imu_misalignment",
-    "imu_time_offset", "packet_loss", "floor_slope",
+    "imu_time_offset", "packet_loss", "floor_slope", "floor_softness",
 )
 
 ActuationLatency.name = "latency"
@@ -364,6 +364,40 @@ class FloorSlope(Effect):
         return f"FloorSlope({self.angle!r}, azimuth={self.azimuth!r})"
 
 
+MUJOCO_TIMECONST_S = 0.02
+"""MuJoCo's default contact ``solref`` time constant, s: the floor of the nominal model."""
+
+
+class FloorSoftness(Effect):
+    """A floor that gives: its contacts' ``solref`` time constant ``timeconst`` s (MuJoCo's
+    default 0.02 lets a Go2 standing on four legs sink its feet 2 mm; 0.03 about 4-5 mm, 0.04
+    about 7-9 mm, 0.06 about 16-20 mm, as a foam mat) and damping ratio ``dampratio``. The
+    floor's ``solmix`` makes its parameters govern every contact it has, feet and any other
+    body alike."""
+
+    name = "floor_softness"
+
+    def __init__(self, timeconst: float, dampratio: float = 1.0) -> None:
+        tc, dr = float(timeconst), float(dampratio)
+        if not (np.isfinite(tc) and 0.0 < tc <= 0.2 and np.isfinite(dr) and 0.0 < dr <= 10.0):
+            raise ValueError(f"floor softness needs a time constant in (0, 0.2] s and a damping "
+                             f"ratio in (0, 10], got {timeconst!r}, {dampratio!r}")
+        self.timeconst, self.dampratio = tc, dr
+
+    def modify_spec(self, spec: mujoco.MjSpec) -> None:
+        floors = [g for g in spec.geoms if g.name == "floor"]
+        if not floors:
+            raise ValueError("a floor softness needs the model's floor (SimConfig(floor=True))")
+        if spec.option.timestep * 2 > self.timeconst:  # MuJoCo would stiffen it silently
+            raise ValueError(f"a floor time constant of {self.timeconst} s needs a physics step "
+                             f"of at most {self.timeconst / 2} s, got {spec.option.timestep}")
+        floors[0].solref = [self.timeconst, self.dampratio]
+        floors[0].solmix = 1e6  # the other geom's weight is its solmix, 1: the floor's governs
+
+    def __repr__(self) -> str:
+        return f"FloorSoftness({self.timeconst!r}, dampratio={self.dampratio!r})"
+
+
 class TorqueLimit(Effect):
     """Torque saturation below the URDF effort limit, with voltage sag: the motor delivers at
     most ``limit - droop * |dq|`` N m (>= 0) on the selected joints (droop N m s/rad models the
@@ -517,8 +551,7 @@ def apply_imu_effects(effects, t, gyro, accel, quat_wxyz):
 
 
 __all__ += [
-    "EFFECT_NAMES", "Armature", "Backlash", "CoulombFriction", "FloorSlope", "FootFriction",
-    "ImuBias",
-    "ImuEffect", "ImuMisalignment", "ImuTimeOffset", "LinkMass", "PacketLoss", "TorqueLimit",
-    "ViscousFriction", "apply_imu_effects",
+    "EFFECT_NAMES", "MUJOCO_TIMECONST_S", "Armature", "Backlash", "CoulombFriction", "FloorSlope",
+    "FloorSoftness", "FootFriction", "ImuBias", "ImuEffect", "ImuMisalignment", "ImuTimeOffset",
+    "LinkMass", "PacketLoss", "TorqueLimit", "ViscousFriction", "apply_imu_effects",
 ]

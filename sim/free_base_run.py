@@ -21,7 +21,7 @@ the same way.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -57,7 +57,10 @@ class RunHealth:
     (None for gaits); lifted_foot_touched: whether its foot touched the floor (None without a
     lifted leg); lifted_foot_min_z: lowest height of its foot centre, m (NaN without one).
     fell: tilt beyond :data:`FALL_TILT`, base below :data:`FALL_HEIGHT` or the base body on the
-    floor. duration_s: watched time, s.
+    floor. duration_s: watched time, s. calf_reach_mm: for each leg whose calf touched the floor
+    with more than its foot sphere, the farthest such contact from its foot centre, mm
+    (:meth:`~sim.go2.Go2Sim.calf_contact_reach`: up to 30 mm the calf's lower end, which wraps
+    the top of the foot; the knee is 213 mm up).
     """
 
     max_tilt_deg: float
@@ -70,10 +73,12 @@ class RunHealth:
     lifted_foot_min_z: float
     fell: bool
     duration_s: float
+    calf_reach_mm: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
         d["body_contacts"] = list(self.body_contacts)
+        d["calf_reach_mm"] = dict(self.calf_reach_mm)
         return d
 
     @classmethod
@@ -100,6 +105,7 @@ class HealthTracker:
         self._foot_min = np.inf
         self._t0: float | None = None
         self._t1 = 0.0
+        self._reach = np.full(4, np.nan)
 
     def update(self, sim: Go2Sim) -> None:
         tilt = sim.base_tilt
@@ -109,7 +115,11 @@ class HealthTracker:
         self._tilt_sq += tilt * tilt
         self._z_min = min(self._z_min, z)
         self._z_last = z
-        self._bodies.update(sim.body_contacts())
+        bodies = sim.body_contacts()
+        if bodies:
+            self._bodies.update(bodies)
+            if any(b.endswith("_calf") for b in bodies):
+                self._reach = np.fmax(self._reach, sim.calf_contact_reach())
         if self._li is not None:
             self._touched |= bool(sim.foot_contact_forces[self._li] > 0.0)
             self._foot_min = min(self._foot_min, float(sim.foot_positions[self._li, 2]))
@@ -127,7 +137,9 @@ class HealthTracker:
             float(self._z_min), float(self._z_last), tuple(sorted(self._bodies)),
             self.lifted_leg, None if self._li is None else bool(self._touched),
             float(self._foot_min) if self._li is not None else float("nan"), bool(fell),
-            float(self._t1 - (self._t0 or 0.0)))
+            float(self._t1 - (self._t0 or 0.0)),
+            {leg: round(float(1e3 * r), 2) for leg, r in zip(MODEL_LEGS, self._reach, strict=True)
+             if np.isfinite(r)})
 
 
 class RunRecorder:

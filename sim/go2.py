@@ -237,6 +237,7 @@ class Go2Sim:
         self._foot_sites = np.array([m.site(f"{leg}_foot").id for leg in MODEL_LEGS])
         self._foot_geoms = np.array([m.geom(f"{leg}_foot").id for leg in MODEL_LEGS])
         self._floor = m.geom("floor").id if cfg.floor else -1
+        self._calf_bodies = np.array([m.body(f"{leg}_calf").id for leg in MODEL_LEGS])
 
         def sens(name: str) -> slice:
             s = m.sensor(name)
@@ -652,19 +653,43 @@ class Go2Sim:
         """:meth:`foot_specific_force` of FL, FR, RL, RR, (4, 3) m/s^2."""
         return np.stack([self.foot_specific_force(leg) for leg in MODEL_LEGS])
 
-    def body_contacts(self) -> list[str]:
-        """Names of the bodies touching the floor with anything but a foot sphere (sorted,
-        unique): non-empty means the robot fell or knelt."""
+    def _floor_touches(self) -> tuple[np.ndarray, np.ndarray]:
+        """(contact indices, the geom each touches the floor with) for the contacts between the
+        floor and anything but a foot sphere."""
         self._sync()
         d = self.data
         if self._floor < 0 or d.ncon == 0:
-            return []
+            return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
         geoms = d.contact.geom[:d.ncon]
         other = np.where(geoms[:, 0] == self._floor, geoms[:, 1],
                          np.where(geoms[:, 1] == self._floor, geoms[:, 0], -1))
-        other = other[(other >= 0) & ~np.isin(other, self._foot_geoms)]
+        idx = np.flatnonzero((other >= 0) & ~np.isin(other, self._foot_geoms))
+        return idx, other[idx]
+
+    def body_contacts(self) -> list[str]:
+        """Names of the bodies touching the floor with anything but a foot sphere (sorted,
+        unique): non-empty means the robot fell or knelt."""
+        _, other = self._floor_touches()
         bodies = {self.model.body(int(self.model.geom_bodyid[g])).name for g in other}
         return sorted(bodies)
+
+    def calf_contact_reach(self) -> np.ndarray:
+        """How far from its foot each calf touches the floor, (4,) m, legs FL, FR, RL, RR: the
+        farthest point of contact between the floor and a calf geom other than the foot sphere,
+        from that leg's foot centre (NaN: no such contact). The URDF's lower calf hull wraps
+        the top of the foot, its vertices there 19-30 mm from the foot centre: a contact that
+        far is the calf's lower end brushing the floor beside the foot, not its shank or knee
+        (213 mm up)."""
+        idx, other = self._floor_touches()
+        d = self.data
+        out = np.full(4, np.nan)
+        for i, g in zip(idx, other, strict=True):
+            legs = np.flatnonzero(self._calf_bodies == self.model.geom_bodyid[g])
+            if legs.size:
+                k = int(legs[0])
+                r = float(np.linalg.norm(d.contact.pos[i] - d.site_xpos[self._foot_sites[k]]))
+                out[k] = np.fmax(out[k], r)
+        return out
 
 
 class Go2BatchSim:

@@ -12,6 +12,7 @@ from sim.effects import (
     Backlash,
     CoulombFriction,
     FloorSlope,
+    FloorSoftness,
     FootFriction,
     ImuBias,
     ImuMisalignment,
@@ -51,7 +52,7 @@ def _step_target():
 def test_names_and_classes():
     for cls in (ActuationLatency, MotorStrength, CoulombFriction, ViscousFriction, Armature,
                 Backlash, LinkMass, FootFriction, TorqueLimit, PacketLoss, ImuBias,
-                ImuMisalignment, ImuTimeOffset, FloorSlope):
+                ImuMisalignment, ImuTimeOffset, FloorSlope, FloorSoftness):
         assert cls.name in EFFECT_NAMES
 
 
@@ -149,6 +150,52 @@ def test_floor_slope_tilts_the_floor_and_starts_the_robot_standing_on_it(azimuth
         Go2Sim(SimConfig(base="fixed", effects=[FloorSlope(0.05)]))
     with pytest.raises(ValueError, match="floor"):
         Go2Sim(SimConfig(base="free", floor=False, effects=[FloorSlope(0.05)]))
+
+
+def _standing_foot_heights(effects) -> np.ndarray:
+    """The foot centres' heights (m) after 2 s standing at the stand pose, firm gains."""
+    sim = Go2Sim(SimConfig(base="free", effects=effects))
+    sim.set_command(stand_pose(), np.zeros(12), np.full(12, 60.0), np.full(12, 2.0), np.zeros(12))
+    sim.step(2000)
+    assert sim.body_contacts() == []
+    return sim.foot_positions[:, 2]
+
+
+def test_floor_softness_lets_the_feet_sink_in():
+    firm = _standing_foot_heights([])
+    soft = _standing_foot_heights([FloorSoftness(0.04)])
+    assert np.all(FOOT_RADIUS - firm < 0.003)  # MuJoCo's default contact: 2 mm
+    sink = FOOT_RADIUS - soft
+    assert np.all((sink > 0.005) & (sink < 0.010)), sink  # a mat: the docstring's 6 mm
+    for bad in ((0.0,), (0.3,), (np.nan,), (0.04, 0.0)):
+        with pytest.raises(ValueError, match="floor softness"):
+            FloorSoftness(*bad)
+    with pytest.raises(ValueError, match="physics step"):  # stiffer than the step can resolve
+        Go2Sim(SimConfig(timestep=0.005, effects=[FloorSoftness(0.008)]))
+    with pytest.raises(ValueError, match="floor"):
+        Go2Sim(SimConfig(floor=False, effects=[FloorSoftness(0.04)]))
+
+
+def test_a_floor_that_swallows_the_feet_meets_the_calves_lower_end():
+    """On a floor soft enough to take the whole foot sphere, the calves touch it too, at
+    their lower end (which wraps the top of the foot), and the health record says where."""
+    from sim.free_base_run import HealthTracker
+
+    firm = Go2Sim(SimConfig(base="free"))
+    assert np.isnan(firm.calf_contact_reach()).all()
+    sim = Go2Sim(SimConfig(base="free", effects=[FloorSoftness(0.08)]))
+    sim.set_command(stand_pose(), np.zeros(12), np.full(12, 60.0), np.full(12, 2.0), np.zeros(12))
+    sim.step(3000)
+    assert np.all(sim.foot_positions[:, 2] < 0.0)  # the foot centres below the floor
+    assert sim.body_contacts() == ["FL_calf", "FR_calf", "RL_calf", "RR_calf"]
+    reach = sim.calf_contact_reach()
+    assert np.all((reach > FOOT_RADIUS) & (reach < 0.030)), reach  # not the shank, nor the knee
+    health = HealthTracker("FL")
+    health.update(sim)
+    h = health.result()
+    assert set(h.calf_reach_mm) == {"FL", "FR", "RL", "RR"}
+    assert h.calf_reach_mm["RR"] == pytest.approx(1e3 * reach[3], abs=0.01)
+    assert type(h).from_dict(h.to_dict()) == h
 
 
 def test_imu_effects_transform_readings():

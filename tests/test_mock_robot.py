@@ -25,6 +25,7 @@ from hw.joystick import key_mask
 from hw.mock.config import MockConfig, load_config
 from hw.mock.robot import MockRobot
 from hw.transport import KEY_LOWCMD, KEY_LOWSTATE, KEY_WIRELESS, Transport, TransportConfig
+from sim.model import FOOT_RADIUS
 
 Q_LIE = full_pose(LIE_POSE_LEG, order="sdk")
 Q_STAND = full_pose(STAND_POSE_LEG, order="sdk")
@@ -474,6 +475,8 @@ def test_config_files_and_errors(tmp_path):
         ("floor_slope_deg: 30\n", "floor_slope_deg"),
         ("floor_slope_deg: 3\nbase: fixed\n", "needs base: free"),
         ("floor_slope_azimuth_deg: .nan\n", "floor_slope_azimuth_deg"),
+        ("floor_timeconst_s: 0.001\n", "floor_timeconst_s"),
+        ("floor_timeconst_s: soft\n", "floor_timeconst_s"),
         ("foot_imus: {FL: {rotation_matrix: [[1, 0, 0], [0, 1, 0], [0, 0, -1]]}}\n",
          "proper rotation"),
         ("[1, 2]\n", "mapping"),
@@ -488,6 +491,18 @@ def test_config_files_and_errors(tmp_path):
     # shared port fits at 4 x 200 Hz
     y.write_text("imu_ports: shared\nfoot_imus: {all: {rate_hz: 200}}\n")
     assert load_config(y).imu_ports == "shared"
+
+
+def test_a_soft_floor_lets_the_lying_robot_sink_in():
+    """floor_timeconst_s reaches the simulator: the feet of the lying robot settle deeper into a
+    floor that gives than into MuJoCo's default one."""
+    sinks = []
+    for tc in (0.02, 0.05):
+        cfg = MockConfig(listen=[], clock="lockstep", foot_imus=NO_IMUS, floor_timeconst_s=tc)
+        with MockRobot(cfg, transport=False) as robot:
+            robot.advance(1.0)
+            sinks.append(FOOT_RADIUS - robot.sim.foot_positions[:, 2].min())
+    assert sinks[0] < 0.001 and sinks[1] > 0.003, sinks  # 0.8 and 3.5 mm
 
 
 def test_a_sloped_floor_is_what_the_body_imu_reports():

@@ -32,6 +32,7 @@ from sim.effects import (
     Armature,
     CoulombFriction,
     FloorSlope,
+    FloorSoftness,
     FootFriction,
     LinkMass,
     MotorStrength,
@@ -71,6 +72,9 @@ def test_training_scenario_draws_the_training_ranges():
     slopes = [e for e in SCENARIOS["slope"].draw(np.random.default_rng(0))[0]
               if isinstance(e, FloorSlope)]
     assert len(slopes) == 1 and np.radians(2) <= slopes[0].angle <= np.radians(5)
+    soft = [e for e in SCENARIOS["soft_floor"].draw(np.random.default_rng(0))[0]
+            if isinstance(e, FloorSoftness)]
+    assert len(soft) == 1 and 0.03 <= soft[0].timeconst <= 0.045
     assert SCENARIOS["quiet"].draw(np.random.default_rng(0))[1].noise_joint_vel == 0.0
     assert SCENARIOS["noisy"].draw(np.random.default_rng(0))[1].noise_joint_vel == 2 * 1.5
     effects, dist = SCENARIOS["nominal"].draw(np.random.default_rng(0))
@@ -86,7 +90,7 @@ def test_scenarios_keep_their_places():
     # policies are paired with new runs (compare) only while the places stay put
     assert list(SCENARIOS)[:11] == ["nominal", "training", "heavy", "slippery", "late", "weak",
                                     "joint_friction", "shoves", "noisy", "quiet", "damped_joints"]
-    assert list(SCENARIOS)[11:] == ["slope"]
+    assert list(SCENARIOS)[11:] == ["slope", "soft_floor"]
 
 
 def test_disturbance_noise_is_bounded_and_only_on_sensed_terms():
@@ -142,12 +146,16 @@ def test_perturbed_episode_differs_and_summarises(episodes):
     # 20-40 ms of latency and the training's noise move the base much more than nothing does
     assert (not late.success) or late.rate_rms > 2 * nominal.rate_rms
     failed = EpisodeResult("late", "RL", 1, False, ["fall", "RR_calf on floor"])
-    s = summarise([nominal, late, failed])
+    brushed = EpisodeResult("soft_floor", "FL", 0, False, ["FR_calf on floor"],
+                            calf_reach_mm={"FR": 24.6})
+    s = summarise([nominal, late, failed, brushed])
     assert s["nominal"]["success"] == 1.0 and s["nominal"]["legs"] == {"FL": 1.0}
     assert s["late"]["episodes"] == 2 and s["late"]["causes"]["fall"] >= 1
     assert s["late"]["legs"]["RL"] == 0.0
-    page = render_markdown([nominal, late, failed], "p.onnx", 1)
+    assert s["soft_floor"]["calf_reach_mm"] == {"FR_calf on floor": 24.6}
+    page = render_markdown([nominal, late, failed, brushed], "p.onnx", 1)
     assert "| nominal | no perturbation | 1 | 100 % |" in page
+    assert "| FR_calf on floor 1 (25 mm) |" in page  # where the calf touched, from its foot
     # the counted causes: the made-up failure's plus whatever the simulated episode had
     assert f"RR_calf on floor {1 + late.causes.count('RR_calf on floor')}" in page
 

@@ -118,6 +118,7 @@ class MockConfig:
     initial_pose: str = "lying"
     floor_slope_deg: float = 0.0
     floor_slope_azimuth_deg: float = 0.0
+    floor_timeconst_s: float = 0.02
     seed: int = 0
     imu_ports: str = "per_leg"
     imu_baud: int = 921600
@@ -177,6 +178,10 @@ class MockConfig:
                              f"{self.floor_slope_azimuth_deg!r}")
         if self.floor_slope_deg and self.base != "free":
             raise ValueError("a floor slope needs base: free")
+        if not (isinstance(self.floor_timeconst_s, int | float)
+                and 2.0 / self.physics_hz <= self.floor_timeconst_s <= 0.2):
+            raise ValueError(f"floor_timeconst_s must be in [2 physics steps, 0.2] s, got "
+                             f"{self.floor_timeconst_s!r}")
         if self.imu_ports not in IMU_PORT_MODES:
             raise ValueError(f"imu_ports must be one of {IMU_PORT_MODES}, got {self.imu_ports!r}")
         for name in ("physics_hz", "lowstate_hz", "wireless_hz", "lockstep_quantum_s",

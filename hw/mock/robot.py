@@ -71,7 +71,7 @@ from hw.joystick import encode_wireless_remote, key_mask
 from hw.mock.config import MockConfig
 from hw.mock.foot_imus import FootImuChannel, PortWriter, rotation_to_quat_wxyz
 from hw.transport import KEY_LOWCMD, KEY_LOWSTATE, KEY_WIRELESS, Transport
-from sim.effects import FloorSlope
+from sim.effects import MUJOCO_TIMECONST_S, FloorSlope, FloorSoftness
 from sim.go2 import Go2Sim, SimConfig
 from sim.sensors import BodyImuModel, EncoderModel
 
@@ -135,11 +135,13 @@ class MockRobot:
         self.on_imu_frame = on_imu_frame
         self.lockstep = cfg.clock == "lockstep"
 
-        slope = ([FloorSlope(math.radians(cfg.floor_slope_deg),
+        floor = ([FloorSlope(math.radians(cfg.floor_slope_deg),
                              math.radians(cfg.floor_slope_azimuth_deg))]
                  if cfg.floor_slope_deg else [])
+        if cfg.floor_timeconst_s != MUJOCO_TIMECONST_S:
+            floor.append(FloorSoftness(cfg.floor_timeconst_s))
         self.sim = Go2Sim(SimConfig(base=cfg.base, timestep=cfg.physics_dt, seed=cfg.seed,
-                                    effects=slope))
+                                    effects=floor))
         pose = LIE_POSE_LEG if cfg.initial_pose == "lying" else STAND_POSE_LEG
         self.sim.reset(q=full_pose(pose, order="model"))
         self._dt = cfg.physics_dt
