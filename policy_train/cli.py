@@ -13,10 +13,13 @@
                  [--randomisation standard|training]
   a2i-train transfer policies/NAME.onnx [--scenarios training,heavy,...] [--episodes 20]
                  [--legs FL,FR,RL,RR] [--out docs/results/policy_transfer.md] [--append]
-                                   (the calibration re-run on sim.go2 under perturbations)
+                 [--model-xml MJCF] (the calibration re-run on sim.go2 under perturbations;
+                                    on another model of the Go2: sim to sim)
   a2i-train compare A.json B.json  (two transfer runs on the same draws, episode by episode)
   a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD]
-                   [--t-r S]       (the same network with other deploy gains or excitation speed)
+                   [--t-r S] [--shift S]
+                                   (the same network with other deploy gains, excitation speed
+                                    or time to shift the body before the lift)
   a2i-train refine policies/NAME.onnx --out policies/OTHER [--generations 40] [--leg FL]
                    [--pairs 4] [--episodes 24] [--fail-cost 0.1] [--dr FIELD=VALUE ...]
                    [--seed 1000] [--state F] [--resume]
@@ -202,9 +205,9 @@ def _export(a) -> int:
 def _derive(a) -> int:
     from policy_train.export import derive_policy
 
-    if a.gains is None and a.lift_gains is None and a.t_r is None:
-        raise SystemExit("a2i-train derive: give --gains, --lift-gains and/or --t-r")
-    onnx_path, json_path = derive_policy(a.onnx, a.out, a.gains, a.lift_gains, a.t_r)
+    if a.gains is None and a.lift_gains is None and a.t_r is None and a.shift is None:
+        raise SystemExit("a2i-train derive: give --gains, --lift-gains, --t-r and/or --shift")
+    onnx_path, json_path = derive_policy(a.onnx, a.out, a.gains, a.lift_gains, a.t_r, a.shift)
     print(f"wrote {onnx_path} and {json_path} (the network of {a.onnx})")
     return 0
 
@@ -231,6 +234,7 @@ def _transfer(a) -> int:
         SCENARIOS,
         load_results,
         merge_results,
+        model_identity,
         summarise,
         timed_run,
         write_results,
@@ -240,6 +244,7 @@ def _transfer(a) -> int:
         for s in SCENARIOS.values():
             print(f"{s.name:15s} {s.description}")
         return 0
+    model = model_identity(a.model_xml)  # a file that is no Go2 model is refused at once
     page = None
     if a.append:  # checked before the run: a page it cannot join is refused at once
         import json
@@ -249,12 +254,13 @@ def _transfer(a) -> int:
         page = load_results(Path(a.out).with_suffix(".json"))
         run_legs = a.legs or json.loads(Path(a.onnx).with_suffix(".json").read_text()).get(
             "legs", list(LEGS))
-        merge_results(page, [], a.onnx, a.seed, run_legs, a.episodes)
+        merge_results(page, [], a.onnx, a.seed, run_legs, a.episodes, model)
     n = a.episodes * len(a.scenarios) * len(a.legs or (1, 1, 1, 1))
-    print(f"transfer: {a.onnx}, scenarios {', '.join(a.scenarios)}, about {n} episodes",
+    on = "" if model is None else f" on {a.model_xml}"
+    print(f"transfer: {a.onnx}{on}, scenarios {', '.join(a.scenarios)}, about {n} episodes",
           flush=True)
     res, elapsed = timed_run(a.onnx, a.scenarios, a.legs, a.episodes, a.seed, a.workers,
-                             log=lambda s: print(s, flush=True))
+                             log=lambda s: print(s, flush=True), model_xml=a.model_xml)
     for s, x in summarise(res).items():
         legs = " ".join(f"{g} {100 * v:.0f} %" for g, v in x["legs"].items())
         print(f"{s:15s} success {100 * x['success']:5.1f} % ({legs}); rate "
@@ -262,9 +268,9 @@ def _transfer(a) -> int:
               f"{x['cn_p90']:.3f}")
     if not a.no_write:
         if page is not None:
-            res = merge_results(page, res, a.onnx, a.seed, run_legs, a.episodes)
+            res = merge_results(page, res, a.onnx, a.seed, run_legs, a.episodes, model)
             elapsed += page[0]["elapsed_s"] or 0.0
-        write_results(res, a.out, a.onnx, a.seed, elapsed)
+        write_results(res, a.out, a.onnx, a.seed, elapsed, model)
         print(f"wrote {a.out} and {Path(a.out).with_suffix('.json')}")
     return 0
 
@@ -277,8 +283,11 @@ def _compare(a) -> int:
         raise ValueError(f"the runs drew with different seeds ({meta_a['seed']} and "
                          f"{meta_b['seed']}): their episodes are not the same draws")
     names = [Path(m["policy"]).stem for m in (meta_a, meta_b)]
-    if names[0] == names[1]:
-        names = ["A", "B"]
+    if names[0] == names[1]:  # one policy on two models (sim to sim), or twice
+        names = [f"{Path(m['model']['path']).parent.name}/{Path(m['model']['path']).stem}"
+                 if m["model"] else "URDF" for m in (meta_a, meta_b)]
+        if names[0] == names[1]:
+            names = ["A", "B"]
     print(render_comparison(compare(eps_a, eps_b), *names), end="")
     return 0
 
@@ -632,6 +641,10 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--t-r", type=_number(0.05, 5.0, "must be in [0.05, 5) s"), default=None,
                    metavar="S", help="the excitation's time constant t_r (s), inside the range "
                    "the policy trained against; slower motions shake the tripod less")
+    g.add_argument("--shift", type=_number(0.05, float("inf"), "must be >= 0.05 s"), default=None,
+                   metavar="S", help="the shift phase (s): how long the policy has, every foot "
+                   "down, to move the body over the three it will stand on; at least the "
+                   "training's"),
     r = sub.add_parser("refine", help="add a linear residual on the body's rate and tilt to an "
                        "exported policy's lifts of one leg, tuned by evolution strategies")
     r.add_argument("onnx", help="the exported policy (its .json beside it); a refined policy "
@@ -691,8 +704,11 @@ def main(argv: list[str] | None = None) -> int:
     x.add_argument("--out", default="docs/results/policy_transfer.md",
                    help="markdown page; the episodes go beside it as .json")
     x.add_argument("--append", action="store_true",
-                   help="add these scenarios to the page at --out (the same policy, seed, legs "
-                        "and episodes), replacing its rows of them")
+                   help="add these scenarios to the page at --out (the same policy, seed, legs, "
+                        "episodes and model), replacing its rows of them")
+    x.add_argument("--model-xml", default=None, metavar="MJCF",
+                   help="run on another MJCF model of the Go2 instead of the URDF's (e.g. MuJoCo "
+                        "Menagerie's unitree_go2/scene.xml; see sim/external_model.py)")
     c = sub.add_parser("compare", help="two transfer runs of the same seed, paired episode by "
                                        "episode (which policy holds more of the same draws)")
     c.add_argument("episodes_files", nargs=2, metavar="EPISODES_JSON",
@@ -705,7 +721,7 @@ def main(argv: list[str] | None = None) -> int:
     # Input files named on the command line must exist: say so in one line, exit 2.
     if a.cmd == "tripod" and a.resume and a.from_policy:
         p.error("--resume and --from-policy exclude each other: start from one")
-    for name in ("checkpoint", "onnx", "resume", "episodes_files", "from_policy"):
+    for name in ("checkpoint", "onnx", "resume", "episodes_files", "from_policy", "model_xml"):
         paths = getattr(a, name, None)
         for path in [paths] if isinstance(paths, str) else paths or ():
             if not Path(path).is_file():

@@ -237,7 +237,7 @@ def onnx_bytes(actor: torch.nn.Module, n_in: int) -> bytes:
 
 
 def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
-                  lift_gains=None, t_r=None) -> tuple[Path, Path]:
+                  lift_gains=None, t_r=None, shift=None) -> tuple[Path, Path]:
     """Write ``<out_stem>.onnx`` (the source's network, byte for byte) and ``<out_stem>.json``
     (the source's, with other deploy gains or excitation speed) for a policy whose
     checkpoints are gone.
@@ -247,8 +247,11 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     joint or three, (hip, thigh, calf), the same on every leg; lift_gains: the lifted leg's,
     as :func:`export_policy`; t_r: the excitation's time constant (s, the JSON's
     ``lift_schedule``), inside the range the policy was trained against (its
-    ``train_config``'s ``t_r_range``: it never balanced against other speeds).
-    The JSON's ``derived_from`` names the source, its commit, the gains and t_r it had; its
+    ``train_config``'s ``t_r_range``: it never balanced against other speeds); shift: the
+    shift phase (s, the JSON's ``lift_schedule``: the policy alone, every foot down, moving the
+    body over the three feet it will stand on), at least the training's ``shift_s`` (the policy
+    never lifted sooner) and at most 5 s.
+    The JSON's ``derived_from`` names the source, its commit, the gains, t_r and shift it had; its
     evaluation figures are dropped (they were measured with the source's gains).
     ValueError on a source that is not an exported policy or on gains deploy refuses."""
     from deploy.policy import PolicyMeta
@@ -266,7 +269,8 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     name = out_stem.name.removesuffix(".onnx")
     meta["derived_from"] = {"policy": src.name, "commit": meta.get("commit"),
                             "kp": meta["kp"], "kd": meta["kd"],
-                            "lift_gains": [sched.kp, sched.kd], "t_r": sched.t_r}
+                            "lift_gains": [sched.kp, sched.kd], "t_r": sched.t_r,
+                            "shift": sched.shift}
     if gains is not None:
         kp, kd = (_per_joint(g, name) for g, name in zip(gains, ("kp", "kd"), strict=True))
         if not (np.all(np.isfinite(kp + kd)) and np.all(kp > 0) and np.all(kd >= 0)):
@@ -282,6 +286,12 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
             raise ValueError(f"t_r {t_r} s is outside the {lo}-{hi} s the policy was trained "
                              "against")
         meta["lift_schedule"] = {**meta["lift_schedule"], "t_r": float(t_r)}
+    if shift is not None:
+        lo = meta["train_config"]["env"].get("shift_s", sched.shift)
+        if not (np.isfinite(shift) and lo <= shift <= 5.0):
+            raise ValueError(f"shift {shift} s is outside {lo}-5 s (the policy trained with a "
+                             f"shift of {lo} s and never lifted sooner)")
+        meta["lift_schedule"] = {**meta["lift_schedule"], "shift": float(shift)}
     meta.update(name=name, onnx=f"{name}.onnx", commit=git_commit(), evaluation={},
                 created_utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
     meta.pop("evaluation_nominal", None)

@@ -126,6 +126,7 @@ def run_policy_a2i(
     disturbance: Disturbance | None = None,
     progress=None,
     commands_per_tick: int = COMMANDS_PER_TICK,
+    model_xml: str | None = None,
 ) -> tuple[MotionRun, RunHealth]:
     """The A2I calibration of ``leg`` by the tripod policy on the free-base simulated Go2.
 
@@ -140,6 +141,8 @@ def run_policy_a2i(
     (:class:`Disturbance`; None: neither). commands_per_tick: LowCmd_ frames per policy tick,
     each carrying the lifted leg's schedule at its time (deploy's
     :data:`deploy.lift_schedule.COMMANDS_PER_TICK`; must divide the tick's physics steps).
+    model_xml: another MJCF model of the Go2 to run on (:mod:`sim.external_model`; None: the
+    URDF's).
 
     Returns the :class:`MotionRun` of the excitation phase (sim-time stamps; motion name
     ``a2i_<leg>``) and the :class:`RunHealth` of hold + excitation (``fell`` covers the whole
@@ -172,7 +175,7 @@ def run_policy_a2i(
     idx_s = sdk_indices(leg)
 
     sim = free_base_sim(timestep, sdk_to_model(pb.default_pose), effects,
-                        0 if disturbance is None else disturbance.seed)
+                        0 if disturbance is None else disturbance.seed, model_xml)
     rng = None if disturbance is None else np.random.default_rng(disturbance.seed)
     pushing = disturbance is not None and disturbance.push_vel > 0
     next_push = rng.uniform(*disturbance.push_interval) if pushing else np.inf

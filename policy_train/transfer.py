@@ -20,6 +20,11 @@ with a :class:`Scenario`'s perturbations drawn afresh per episode:
   damping, rotor inertia and dry friction a checker's own simulation may well carry; a floor
   that is not level), or without the sensor noise.
 
+With ``model_xml`` (``a2i-train transfer --model-xml``) every episode runs on another MJCF model
+of the Go2 instead of the URDF's (:mod:`sim.external_model`, e.g. MuJoCo Menagerie's): a sim-to-sim
+check, on the geometry, masses, joints and contacts a checker's own script may load. Its pages
+record the model (path and the compiled model's hash) and do not take episodes of another.
+
 An episode succeeds as the evaluation's do: no fall over the whole run, and over the hold and
 the excitation no body but a foot on the floor and the lifted foot never down
 (:class:`sim.free_base_run.RunHealth`). Figures over the excitation, of the successful episodes:
@@ -56,8 +61,9 @@ from sim.effects import (
 )
 
 __all__ = ["SCENARIOS", "EpisodeResult", "PairedScenario", "Scenario", "compare",
-           "load_results", "merge_results", "render_comparison", "render_markdown", "run_episode",
-           "run_transfer", "summarise", "timed_run", "write_results"]
+           "load_results", "merge_results", "model_identity", "render_comparison",
+           "render_markdown", "run_episode", "run_transfer", "summarise", "timed_run",
+           "write_results"]
 
 BASE_MASS_KG = 7.277
 """Mass of the base body of :mod:`sim.go2`'s model, kg (a payload of m kg scales it by
@@ -200,13 +206,15 @@ def _episode_seed(seed: int, scenario: str, leg: str, episode: int) -> np.random
 
 
 def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed: int = 1,
-                periods: int | None = None) -> EpisodeResult:
+                periods: int | None = None, model_xml: str | None = None) -> EpisodeResult:
     """One calibration of ``leg`` by the policy under ``scenario`` (its draws from ``seed``,
-    the scenario, the leg and ``episode``). periods: None for the JSON's."""
+    the scenario, the leg and ``episode``). periods: None for the JSON's. model_xml: another
+    MJCF model of the Go2 (:mod:`sim.external_model`; None: the URDF's)."""
     from policy_train.policy_motion import run_policy_a2i
 
     effects, dist = scenario.draw(_episode_seed(seed, scenario.name, leg, episode))
-    run, h = run_policy_a2i(onnx_path, leg, periods=periods, effects=effects, disturbance=dist)
+    run, h = run_policy_a2i(onnx_path, leg, periods=periods, effects=effects, disturbance=dist,
+                            model_xml=model_xml)
     causes = []
     if h.fell:
         causes.append("fall")
@@ -231,12 +239,35 @@ def _job(args) -> EpisodeResult:
     return run_episode(*args)
 
 
+def model_identity(model_xml) -> dict | None:
+    """{"path", "sha256"} of the model ``model_xml`` names as the simulator runs it (the hash
+    of the compiled model, so that an included file or a changed adaptation changes it); None
+    for the URDF's. ValueError (one line) if the file cannot be made into a Go2 model."""
+    import hashlib
+    import tempfile
+    from pathlib import Path
+
+    if model_xml is None:
+        return None
+    import mujoco
+
+    from sim.external_model import build_go2_spec_from_mjcf
+
+    m = build_go2_spec_from_mjcf(model_xml).compile()
+    with tempfile.TemporaryDirectory() as d:
+        f = Path(d) / "model.mjb"
+        mujoco.mj_saveModel(m, str(f), None)
+        digest = hashlib.sha256(f.read_bytes()).hexdigest()
+    return {"path": str(model_xml), "sha256": digest}
+
+
 def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int = 1,
                  workers: int | None = None, periods: int | None = None,
-                 progress=None) -> list[EpisodeResult]:
+                 progress=None, model_xml: str | None = None) -> list[EpisodeResult]:
     """``episodes`` per leg of ``legs`` (default: the legs the policy's JSON lists) under each
     of ``scenarios`` (names of :data:`SCENARIOS`). workers: processes (None: all cores).
-    progress(done, total): optional."""
+    progress(done, total): optional. model_xml: another MJCF model of the Go2 to run on
+    (:mod:`sim.external_model`; None: the URDF's)."""
     from pathlib import Path
 
     if episodes < 1:
@@ -248,7 +279,17 @@ def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int 
     onnx_path = Path(onnx_path)
     meta = json.loads(onnx_path.with_suffix(".json").read_text())
     legs = [check_leg(g) for g in (legs or meta.get("legs", LEGS))]
-    jobs = [(str(onnx_path), SCENARIOS[s], leg, e, seed, periods)
+    # a model or a scenario it cannot take is refused before any worker starts
+    from sim.go2 import SimConfig, build_model_for
+
+    model_identity(model_xml)
+    for s in scenarios:
+        effects, _ = SCENARIOS[s].draw(_episode_seed(seed, s, legs[0], 0))
+        try:
+            build_model_for(SimConfig(effects=effects, model_xml=model_xml))
+        except ValueError as e:
+            raise ValueError(f"scenario {s}: {str(e).splitlines()[0]}") from None
+    jobs = [(str(onnx_path), SCENARIOS[s], leg, e, seed, periods, model_xml)
             for s in scenarios for leg in legs for e in range(episodes)]
     out: list[EpisodeResult] = []
     with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
@@ -299,21 +340,26 @@ def summarise(results: list[EpisodeResult]) -> dict:
 
 
 def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
-                    elapsed_s: float | None = None) -> str:
-    """The page of ``a2i-train transfer`` (one row per scenario)."""
+                    elapsed_s: float | None = None, model: dict | None = None) -> str:
+    """The page of ``a2i-train transfer`` (one row per scenario); model: the
+    :func:`model_identity` of the model it ran on (None: the URDF's)."""
     summ = summarise(results)
     legs = list(dict.fromkeys(r.leg for r in results))
     n = max(1, len(results) // max(1, len(summ) * len(legs)))
     leg_arg = "" if legs == list(LEGS) else f" --legs {','.join(legs)}"
+    model_arg = "" if model is None else f" --model-xml {model['path']}"
+    on_model = ("the Go2 model built from the URDF" if model is None else
+                f"the Go2 model of `{model['path']}` (compiled as the simulator runs it: sha256 "
+                f"{model['sha256'][:16]}; `sim/external_model.py`) instead of the URDF's")
     lines = [
         "# Tripod policy transfer: a second simulator, perturbations not trained for",
         "",
-        (f"Produced by `a2i-train transfer {policy} --episodes {n} --seed {seed}{leg_arg}` "
-        "(`policy_train/transfer.py`): each episode is one calibration of one leg by the "
-        "on-board runner on `sim.go2` (1 kHz, free base on the floor: the mock robot's "
-        "simulator, not the training environment), with the scenario's perturbations drawn "
-        "afresh. Success: no fall, and over hold and excitation no body but a foot on the floor "
-        "and the lifted foot never down. Figures over the excitation of the successful episodes, "
+        (f"Produced by `a2i-train transfer {policy} --episodes {n} --seed {seed}{leg_arg}"
+        f"{model_arg}` (`policy_train/transfer.py`): each episode is one calibration of one "
+        "leg by the on-board runner on `sim.go2` (1 kHz, free base on the floor: the mock "
+        f"robot's simulator, not the training environment) with {on_model}, and the "
+        "scenario's perturbations drawn afresh. Success: no fall, and over hold and excitation "
+        "no body but a foot on the floor and the lifted foot never down. Figures over the excitation of the successful episodes, "
         "pooled over legs; the evaluation's targets: success 99 %, tilt 3 deg, rate 0.1 rad/s, "
         "tracking 0.05 rad, CN 1.2. Failures: in how many episodes each thing happened (an "
         "episode that tips over counts a fall and every body that touched the floor; the "
@@ -345,19 +391,24 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
 
 
 def write_results(results: list[EpisodeResult], out_md, policy: str, seed: int,
-                  elapsed_s: float | None = None) -> None:
-    """The markdown page at ``out_md`` and the episodes beside it (``.json``), atomically."""
+                  elapsed_s: float | None = None, model: dict | None = None) -> None:
+    """The markdown page at ``out_md`` and the episodes beside it (``.json``), atomically;
+    model: the :func:`model_identity` of the model it ran on (None: the URDF's)."""
     from pathlib import Path
 
     out_md = Path(out_md)
-    write_text_atomic(out_md, render_markdown(results, policy, seed, elapsed_s))
+    write_text_atomic(out_md, render_markdown(results, policy, seed, elapsed_s, model))
     # one episode per line: a few hundred short rows stay small and diff well
-    head = json.dumps({"policy": policy, "seed": seed, "elapsed_s": elapsed_s})[:-1]
+    meta = {"policy": policy, "seed": seed, "elapsed_s": elapsed_s}
+    if model is not None:  # pages on the URDF's model keep their earlier form
+        meta["model"] = model
+    head = json.dumps(meta)[:-1]
     rows = ",\n".join(json.dumps(dataclasses.asdict(r)) for r in results)
     write_text_atomic(out_md.with_suffix(".json"), f'{head}, "episodes": [\n{rows}\n]}}\n')
 
 
-def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None, log=print):
+def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None, log=print,
+              model_xml=None):
     """:func:`run_transfer` with a progress line about every 10 % (for the CLI)."""
     t0 = time.time()
     last = [0.0]
@@ -367,36 +418,50 @@ def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None,
             last[0] = done / total
             log(f"  {done}/{total} episodes, {time.time() - t0:.0f} s")
 
-    res = run_transfer(onnx_path, scenarios, legs, episodes, seed, workers, periods, progress)
+    res = run_transfer(onnx_path, scenarios, legs, episodes, seed, workers, periods, progress,
+                       model_xml)
     return res, time.time() - t0
 
 
 def load_results(path) -> tuple[dict, list[EpisodeResult]]:
-    """The episodes file :func:`write_results` wrote: ({"policy", "seed", "elapsed_s"}, episodes)."""
+    """The episodes file :func:`write_results` wrote: ({"policy", "seed", "elapsed_s",
+    "model"}, episodes); "model" None for the URDF's."""
     from pathlib import Path
 
     try:
         d = json.loads(Path(path).read_text())
         eps = [EpisodeResult(**e) for e in d["episodes"]]
         meta = {k: d[k] for k in ("policy", "seed", "elapsed_s")}
+        meta["model"] = d.get("model")
     except (KeyError, TypeError, json.JSONDecodeError) as e:
         raise ValueError(f"{path}: not a transfer episodes file ({e})") from None
     return meta, eps
 
 
 def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResult],
-                  policy: str, seed: int, legs, episodes: int) -> list[EpisodeResult]:
+                  policy: str, seed: int, legs, episodes: int,
+                  model: dict | None = None) -> list[EpisodeResult]:
     """A page's episodes (:func:`load_results`) with ``new``'s scenarios added or replaced, in
     :data:`SCENARIOS`' order: the page one command over every scenario would have written, since
     an episode's draws depend only on the seed, its scenario, leg and number. ValueError unless
-    the page has this policy, seed, legs and episodes per leg and scenario."""
+    the page has this policy, seed, legs, episodes per leg and scenario, and model
+    (:func:`model_identity`, compared by its hash)."""
     meta, old = page
     old_legs = list(dict.fromkeys(r.leg for r in old))
     per = {(r.scenario, r.leg) for r in old}
     old_n = len(old) // max(1, len(per))
+
+    def _model(m):
+        return "the URDF's" if m is None else f"{m['path']} ({m['sha256'][:16]})"
+
+    old_model, new_model = meta.get("model"), model
+    same_model = (old_model is None) == (new_model is None) and (
+        old_model is None or old_model["sha256"] == new_model["sha256"])
     for what, was, now in (("policy", meta["policy"], policy), ("seed", meta["seed"], seed),
                            ("legs", ",".join(old_legs), ",".join(legs)),
-                           ("episodes", old_n, episodes)):
+                           ("episodes", old_n, episodes),
+                           ("model", _model(old_model),
+                            _model(old_model) if same_model else _model(new_model))):
         if was != now:
             raise ValueError(f"the page has {what} {was}, not {now}: write a new page")
     redone = {r.scenario for r in new}

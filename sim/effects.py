@@ -293,6 +293,10 @@ class LinkMass(Effect):
     def modify_spec(self, spec: mujoco.MjSpec) -> None:
         for n in self.bodies:
             b = spec.body(n)
+            if b is None:
+                if n.endswith("_foot"):  # a model whose foot is a geom of the calf body
+                    continue
+                raise ValueError(f"link mass: the model has no body {n!r}")
             b.mass = float(b.mass) * self.scale
             b.inertia = np.asarray(b.inertia, dtype=float) * self.scale
             b.ipos = np.asarray(b.ipos, dtype=float) + self.com_shift
@@ -391,6 +395,10 @@ class FloorSoftness(Effect):
         if spec.option.timestep * 2 > self.timeconst:  # MuJoCo would stiffen it silently
             raise ValueError(f"a floor time constant of {self.timeconst} s needs a physics step "
                              f"of at most {self.timeconst / 2} s, got {spec.option.timestep}")
+        over = [g.name or "(unnamed)" for g in spec.geoms if g.priority > floors[0].priority]
+        if over:  # MuJoCo takes the contact settings of the geom with the higher priority
+            raise ValueError(f"a floor softness would not act: {', '.join(over)} have priority "
+                             "over the floor, their own contact settings govern")
         floors[0].solref = [self.timeconst, self.dampratio]
         floors[0].solmix = 1e6  # the other geom's weight is its solmix, 1: the floor's governs
 

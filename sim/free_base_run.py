@@ -188,11 +188,14 @@ class RunRecorder:
                          gyro, self.fw[:, :n].copy(), self.fsf[:, :n].copy(), rmse)
 
 
-def free_base_sim(timestep: float = 0.001, q0=None, effects=(), seed: int = 0) -> Go2Sim:
+def free_base_sim(timestep: float = 0.001, q0=None, effects=(), seed: int = 0,
+                  model_xml: str | None = None) -> Go2Sim:
     """A :class:`Go2Sim` on the floor, free base, reset with its joints at ``q0`` ((12,) model
     order, rad; default the stand pose) and the lowest foot touching the floor. effects:
-    :class:`sim.effects.Effect` objects (fresh ones per simulation); seed: their ``sim.rng``."""
-    cfg = SimConfig(base="free", floor=True, timestep=timestep, effects=list(effects), seed=seed)
+    :class:`sim.effects.Effect` objects (fresh ones per simulation); seed: their ``sim.rng``.
+    model_xml: another MJCF model of the Go2 (:mod:`sim.external_model`; None: the URDF's)."""
+    cfg = SimConfig(base="free", floor=True, timestep=timestep, effects=list(effects), seed=seed,
+                    model_xml=None if model_xml is None else str(model_xml))
     sim = Go2Sim(cfg, model=build_model_for(cfg))
     sim.reset(q=q0)
     return sim

@@ -57,6 +57,7 @@ from calib.joints import (
     sdk_to_model,
 )
 from sim.effects import Effect, MotorCommand
+from sim.external_model import build_go2_spec_from_mjcf
 from sim.model import FIXED_BASE_POS, FOOT_RADIUS, build_go2_spec
 
 __all__ = [
@@ -87,7 +88,8 @@ class SimConfig:
     actuator ``ctrlrange`` caps at those in any case). seed: for effects that draw random
     numbers (``Go2Sim.rng``). effects: :class:`sim.effects.Effect` objects, applied in order.
     floor: add the ground plane. fixed_base_pos: world position of the base for ``"fixed"`` and
-    the default start of ``"mocap"``, m.
+    the default start of ``"mocap"``, m. model_xml: path of another MJCF model of the Go2 to
+    simulate instead of the URDF's (:mod:`sim.external_model`; None: the URDF's).
     """
 
     base: str = "free"
@@ -97,6 +99,7 @@ class SimConfig:
     effects: list[Effect] = field(default_factory=list)
     floor: bool = True
     fixed_base_pos: tuple[float, float, float] = FIXED_BASE_POS
+    model_xml: str | None = None
 
 
 @dataclass(frozen=True)
@@ -119,7 +122,11 @@ def build_model_for(config: SimConfig) -> mujoco.MjModel:
 
     Build once and pass it to many ``Go2Sim(config, model=...)`` to share it (read-only).
     """
-    spec = build_go2_spec(config.base, config.floor, config.timestep, config.fixed_base_pos)
+    if config.model_xml is None:
+        spec = build_go2_spec(config.base, config.floor, config.timestep, config.fixed_base_pos)
+    else:
+        spec = build_go2_spec_from_mjcf(config.model_xml, config.base, config.floor,
+                                        config.timestep, config.fixed_base_pos)
     for e in config.effects:
         e.modify_spec(spec)
     return spec.compile()

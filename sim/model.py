@@ -46,8 +46,11 @@ __all__ = [
     "FLOOR_FRICTION",
     "FOOT_OFFSET",
     "FOOT_RADIUS",
+    "add_sim_parts",
     "build_go2_model",
     "build_go2_spec",
+    "check_joint_order",
+    "joint_names",
 ]
 
 BASE_MODES = ("free", "fixed", "mocap")
@@ -65,7 +68,8 @@ FIXED_BASE_POS = (0.0, 0.0, 0.6)
 _FOOT_MESH = "foot_convex"
 
 
-def _joint_names_in_urdf_order() -> tuple[str, ...]:
+def joint_names() -> tuple[str, ...]:
+    """The 12 hinge joints' names in model order (FL, FR, RL, RR x hip, thigh, calf)."""
     return tuple(f"{n}_joint" for n in MODEL_JOINT_NAMES)
 
 
@@ -133,9 +137,24 @@ def build_go2_spec(
     imu = spec.body("imu")
     if imu is None or not np.allclose(imu.pos, BODY_IMU_OFFSET):
         raise RuntimeError("the Go2 URDF's imu link is missing or moved")
-    base_body.add_site(name="imu", pos=BODY_IMU_OFFSET, size=[0.005, 0, 0])
+    add_sim_parts(spec, base_body, floor)
+    return spec
 
-    if floor:
+
+def add_sim_parts(spec: mujoco.MjSpec, base_body, floor: bool) -> None:
+    """What every model :class:`sim.go2.Go2Sim` drives gets, whatever file it came from: the
+    body IMU site ``imu`` on ``base_body`` (at :data:`BODY_IMU_OFFSET`, unless the spec has
+    one), the floor (unless the spec has a world geom ``floor``; removed if ``floor`` is
+    false), torque actuators in model order capped at the effort limits, and the IMU sensors.
+    The feet's ``<LEG>_foot`` / ``<LEG>_imu`` sites must be there already."""
+    if spec.site("imu") is None:
+        base_body.add_site(name="imu", pos=BODY_IMU_OFFSET, size=[0.005, 0, 0])
+
+    own = [g for g in spec.worldbody.geoms if g.name == "floor"]
+    if not floor:
+        for g in own:
+            spec.delete(g)
+    elif not own:
         spec.worldbody.add_geom(
             name="floor",
             type=mujoco.mjtGeom.mjGEOM_PLANE,
@@ -144,7 +163,7 @@ def build_go2_spec(
         )
 
     limits = np.tile(np.asarray(EFFORT_LIMIT, dtype=float), len(MODEL_LEGS))
-    for name, lim in zip(_joint_names_in_urdf_order(), limits, strict=True):
+    for name, lim in zip(joint_names(), limits, strict=True):
         spec.add_actuator(
             name=name.removesuffix("_joint"),
             target=name,
@@ -168,7 +187,6 @@ def build_go2_spec(
             objtype=site,
             objname=f"{prefix}imu",
         )
-    return spec
 
 
 def build_go2_model(
@@ -193,7 +211,7 @@ def check_joint_order(model: mujoco.MjModel) -> None:
         i for i in range(model.njnt) if model.jnt_type[i] == mujoco.mjtJoint.mjJNT_HINGE
     ]
     names = tuple(model.joint(i).name for i in hinges)
-    if names != _joint_names_in_urdf_order():
+    if names != joint_names():
         raise RuntimeError(f"unexpected joint order in the Go2 model: {names}")
     qadr = model.jnt_qposadr[hinges]
     dadr = model.jnt_dofadr[hinges]

@@ -477,6 +477,7 @@ def test_config_files_and_errors(tmp_path):
         ("floor_slope_azimuth_deg: .nan\n", "floor_slope_azimuth_deg"),
         ("floor_timeconst_s: 0.001\n", "floor_timeconst_s"),
         ("floor_timeconst_s: soft\n", "floor_timeconst_s"),
+        ("model_xml: no/such/go2.xml\n", "model_xml must name an MJCF file"),
         ("foot_imus: {FL: {rotation_matrix: [[1, 0, 0], [0, 1, 0], [0, 0, -1]]}}\n",
          "proper rotation"),
         ("[1, 2]\n", "mapping"),

@@ -420,8 +420,32 @@ def test_derive_sets_the_excitation_speed_within_the_trained_range(exported, tmp
     assert "outside" in capsys.readouterr().err and not (tmp_path / "h.json").exists()
 
 
+def test_derive_sets_the_shift_no_shorter_than_trained(exported, tmp_path, capsys):
+    """`derive --shift 2`: the JSON's lift schedule gives the policy 2 s to move the body before
+    the lift (the evaluation plays it), the source's shift named in ``derived_from``; a shift
+    shorter than the training's is refused, nothing written."""
+    from policy_train.cli import main
+    from policy_train.evaluate import evaluation_env
+
+    d, _ = exported
+    src = json.loads((d / "pol.json").read_text())
+    trained = src["train_config"]["env"]["shift_s"]
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"),
+                 "--shift", "2"]) == 0
+    meta = json.loads((tmp_path / "g.json").read_text())
+    assert meta["lift_schedule"] == {**src["lift_schedule"], "shift": 2.0}
+    assert meta["derived_from"]["shift"] == src["lift_schedule"]["shift"] == trained
+    env, _ = evaluation_env(meta, ("FL",), 1, seed=1, nominal=True)
+    assert env.lift_dur[0, 0] == 2.0
+    capsys.readouterr()
+    for bad in (trained - 0.1, 6.0):
+        assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "h"),
+                     "--shift", str(bad)]) == 2
+        assert "outside" in capsys.readouterr().err and not (tmp_path / "h.json").exists()
+
+
 @pytest.mark.parametrize(("extra", "hint"), [
-    ([], "--gains"), (["--gains", "0,0.5"], "--gains"), (["--gains", "20"], "--gains"),
+    ([], "--gains"), (["--shift", "0"], "--shift"), (["--gains", "0,0.5"], "--gains"), (["--gains", "20"], "--gains"),
     (["--gains", "nan,1"], "--gains"), (["--gains", "29,0.7/23,0.5"], "--gains"),
     (["--gains", "29,0.7/29,0.7/0,0.5"], "--gains"), (["--lift-gains", "0,2"], "--lift-gains"),
     (["--t-r", "0"], "--t-r"), (["--t-r", "x"], "--t-r")])

@@ -119,6 +119,7 @@ class MockConfig:
     floor_slope_deg: float = 0.0
     floor_slope_azimuth_deg: float = 0.0
     floor_timeconst_s: float = 0.02
+    model_xml: str | None = None
     seed: int = 0
     imu_ports: str = "per_leg"
     imu_baud: int = 921600
@@ -182,6 +183,9 @@ class MockConfig:
                 and 2.0 / self.physics_hz <= self.floor_timeconst_s <= 0.2):
             raise ValueError(f"floor_timeconst_s must be in [2 physics steps, 0.2] s, got "
                              f"{self.floor_timeconst_s!r}")
+        if self.model_xml is not None and not (isinstance(self.model_xml, str)
+                                               and Path(self.model_xml).is_file()):
+            raise ValueError(f"model_xml must name an MJCF file of the Go2, got {self.model_xml!r}")
         if self.imu_ports not in IMU_PORT_MODES:
             raise ValueError(f"imu_ports must be one of {IMU_PORT_MODES}, got {self.imu_ports!r}")
         for name in ("physics_hz", "lowstate_hz", "wireless_hz", "lockstep_quantum_s",

@@ -141,7 +141,7 @@ class MockRobot:
         if cfg.floor_timeconst_s != MUJOCO_TIMECONST_S:
             floor.append(FloorSoftness(cfg.floor_timeconst_s))
         self.sim = Go2Sim(SimConfig(base=cfg.base, timestep=cfg.physics_dt, seed=cfg.seed,
-                                    effects=floor))
+                                    effects=floor, model_xml=cfg.model_xml))
         pose = LIE_POSE_LEG if cfg.initial_pose == "lying" else STAND_POSE_LEG
         self.sim.reset(q=full_pose(pose, order="model"))
         self._dt = cfg.physics_dt
