@@ -300,6 +300,26 @@ def _refined(meta: dict) -> str:
             f"{' and '.join(r['legs'])} lifts, tuned by evolution strategies")
 
 
+def _derived(meta: dict) -> str:
+    """What ``a2i-train derive`` changed from its source's deploy settings, if it did."""
+    d = meta.get("derived_from")
+    if not d:
+        return ""
+    sched = meta.get("lift_schedule") or {}
+    changed = []
+    if d.get("kp") != meta.get("kp") or d.get("kd") != meta.get("kd"):
+        changed.append("other joint gains")
+    if d.get("lift_gains") not in (None, [sched.get("kp"), sched.get("kd")]):
+        changed.append(f"the lifted leg at kp {sched.get('kp'):g} / kd {sched.get('kd'):g}")
+    if d.get("t_r") not in (None, sched.get("t_r")):
+        changed.append(f"the excitation at t_r {sched.get('t_r'):g} s (was {d['t_r']:g})")
+    if d.get("shift") not in (None, sched.get("shift")):
+        changed.append(f"a shift of {sched.get('shift'):g} s (was {d['shift']:g})")
+    # no "then": a refined policy keeps the derive record of the policy it was refined from
+    return (f"; its deploy settings from `a2i-train derive` on `{d.get('policy')}`: "
+            f"{', '.join(changed) or 'none changed'}")
+
+
 def _averaged(meta: dict) -> str:
     its = meta.get("averaged_iterations")
     return f"; the weight average of iterations {', '.join(map(str, its))}" if its else ""
@@ -409,7 +429,7 @@ def _report(r: dict, meta: dict, table: str) -> str:
     return f"""# Tripod policy evaluation
 
 Policy `{r['policy']}` (commit `{meta.get('commit')}`, seed {meta.get('seed')},
-{_training(meta)}{_averaged(meta)}{_refined(meta)}). Produced by
+{_training(meta)}{_averaged(meta)}{_refined(meta)}{_derived(meta)}). Produced by
 `a2i-train eval {r.get('path', 'policies/' + r['policy'])} --episodes {r['episodes_per_leg']}` (seed {r['seed']}):
 the ONNX through onnxruntime, the JSON's observation terms, action, joint gains ({_gains_words(meta)}{_gains_note(meta)}) and lift schedule (the
 lifted leg at kp {meta['lift_schedule']['kp']:g} / kd {meta['lift_schedule']['kd']:g}{_lift_gains_note(meta)}).

@@ -437,6 +437,9 @@ def test_derive_sets_the_shift_no_shorter_than_trained(exported, tmp_path, capsy
     assert meta["derived_from"]["shift"] == src["lift_schedule"]["shift"] == trained
     env, _ = evaluation_env(meta, ("FL",), 1, seed=1, nominal=True)
     assert env.lift_dur[0, 0] == 2.0
+    from policy_train.evaluate import _derived  # the evaluation page says what derive changed
+
+    assert _derived(meta).endswith(f"`pol.onnx`: a shift of 2 s (was {trained:g})")
     capsys.readouterr()
     for bad in (trained - 0.1, 6.0):
         assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "h"),
