@@ -5,7 +5,8 @@
                    [--new-rewards]
                    [--lift-leg-weights FL,FR,RL,RR] [--[no-]mirror-augmentation] [--run-dir D]
                    [--dr FIELD=VALUE ...] [--reward TERM=WEIGHT ...]
-                   [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD] [--export policies/NAME]
+                   [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD] [--device cpu|cuda]
+                   [--export policies/NAME]
   a2i-train export CHECKPOINT [CHECKPOINT ...] --out policies/NAME [--legs RL,RR]
                    [--mirror-legs FR,RR]   (several checkpoints of one run: weights averaged)
   a2i-train eval policies/NAME.onnx [--episodes 100] [--legs FL,FR,RL,RR] [--no-write]
@@ -49,10 +50,14 @@ def _tripod(a) -> int:
     import torch
 
     from policy_train.config import DRConfig, EnvConfig, RewardConfig, TrainConfig
-    from policy_train.runner import Trainer
+    from policy_train.runner import Trainer, check_device
 
     if a.iterations < 1:
         raise SystemExit("--iterations must be >= 1")
+    try:
+        check_device(a.device)
+    except ValueError as e:
+        raise SystemExit(f"a2i-train tripod: {e}") from None
     cfg = TrainConfig()
     if a.resume:
         ckpts = [torch.load(c, weights_only=False, map_location="cpu") for c in a.resume]
@@ -115,7 +120,8 @@ def _tripod(a) -> int:
 
         cfg.env.plan_pool_file = str(policy_plan_pool(cfg.env, start["seed"],
                                                       run_dir / "pool.npz"))
-    tr = Trainer(cfg, run_dir, seed=a.seed, log=lambda s: print(s, flush=True))
+    tr = Trainer(cfg, run_dir, seed=a.seed, log=lambda s: print(s, flush=True),
+                 device=a.device)
     if a.resume:
         tr.load(start)
         print(f"resumed from {' '.join(a.resume)} at iteration {tr.iteration}"
@@ -544,6 +550,9 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--threads", type=_positive, default=None,
                    help="threads of the simulation and of the update (default: all CPUs); "
                         "1 each for two runs side by side on two cores")
+    t.add_argument("--device", default="cpu",
+                   help="where the networks and PPO's update run: cpu (default) or cuda on a "
+                        "machine with a GPU (the simulation stays on the CPU's threads)")
     t.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this")
     t.add_argument("--model-file", default=None, help="compiled training model (.mjb)")
     t.add_argument("--plan-pool", default=None, help="precomputed excitation plan pool (.npz)")

@@ -180,22 +180,26 @@ def policy_terms(obs_terms) -> tuple[list[tuple[str, int]], float | None]:
 
 
 class _Mirrors:
-    def __init__(self, env):
+    def __init__(self, env, device):
         terms, scale = policy_terms(env.obs_terms)
         # a policy that sees a history mirrors frame by frame; the critic sees one frame
-        self.policy = Mirror(terms, scale, env.cfg.obs_history)
-        self.critic = Mirror(terms + list(PRIV_TERMS), scale)
-        self.action = ActionMirror()
+        self.policy = Mirror(terms, scale, env.cfg.obs_history).to(device)
+        self.critic = Mirror(terms + list(PRIV_TERMS), scale).to(device)
+        self.action = ActionMirror().to(device)
+        self.device = torch.device(device)
 
 
 def mirror_augmentation(env=None, obs: TensorDict | None = None, actions: torch.Tensor | None = None):
     """rsl-rl ``data_augmentation_func``: (obs, actions) with the mirrored samples appended
     along the batch dimension (either may be None). ``env``: the rsl-rl VecEnv
     (:class:`policy_train.runner.TorchVecEnv`) whose :class:`TripodEnv` gives the layouts."""
+    if obs is None and actions is None:
+        return None, None
     tripod = getattr(env, "env", env)
+    device = (obs["policy"] if obs is not None else actions).device
     m = getattr(tripod, "_mirrors", None)
-    if m is None:
-        m = tripod._mirrors = _Mirrors(tripod)
+    if m is None or m.device != device:  # the update's device (policy_train.runner)
+        m = tripod._mirrors = _Mirrors(tripod, device)
     out_obs = out_act = None
     if obs is not None:
         n = obs.batch_size[0]

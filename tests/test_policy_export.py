@@ -264,6 +264,23 @@ def test_cli_missing_inputs_exit_2_with_one_line(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
+def test_tripod_device_is_checked_before_anything_is_built(tmp_path, capsys):
+    """--device: cpu, or a GPU this machine has; anything else exits 1 with one line and
+    writes nothing."""
+    import torch
+
+    from policy_train.cli import main
+    from policy_train.runner import check_device
+
+    assert check_device("cpu") == "cpu"
+    bad = ["tpu", "cuda:7"] + ([] if torch.cuda.is_available() else ["cuda"])
+    for dev in bad:
+        with pytest.raises(SystemExit) as exc:
+            main(["tripod", "--device", dev, "--iterations", "1", "--run-dir", str(tmp_path / "r")])
+        assert str(exc.value).startswith("a2i-train tripod: ") and "\n" not in str(exc.value)
+    assert not list(tmp_path.iterdir())
+
+
 def test_mirrored_legs_export_plays_the_other_side_mirrored(exported, tmp_path):
     """`export --mirror-legs FR`: the graph answers an FR lift with the mirror image of what
     the network does for the mirrored (FL) observation, and anything else unchanged."""

@@ -111,6 +111,20 @@ def test_mirror_is_an_involution_and_doubles_the_batch(env):
     assert [swap[int(x)] for x in orig] == v.tolist()
 
 
+def test_augmentation_follows_the_tensors_device(env):
+    """The update may run on a GPU (a2i-train tripod --device cuda): the mirrors move to the
+    device of what they mirror (here torch's meta device, which every machine has), and
+    nothing to mirror gives nothing."""
+    n = 4
+    td = TensorDict({"policy": torch.zeros(n, 49), "critic": torch.zeros(
+        n, env.observations()["critic"].shape[1])}, batch_size=[n])
+    mirror_augmentation(env, td, torch.zeros(n, 12))  # the CPU's mirrors first
+    o, a = mirror_augmentation(env, td.to("meta"), torch.zeros(n, 12, device="meta"))
+    assert o["policy"].device.type == "meta" and a.device.type == "meta"
+    assert o.batch_size[0] == 2 * n and a.shape == (2 * n, 12)
+    assert mirror_augmentation(env, None, None) == (None, None)
+
+
 def test_old_configs_train_without_mirror():
     d = TrainConfig().to_dict()
     del d["ppo"]["mirror_augmentation"]
