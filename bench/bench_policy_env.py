@@ -18,11 +18,12 @@ import numpy as np
 from policy_train.config import EnvConfig
 from policy_train.env import TripodEnv
 
+PACK_FILES = {"model_file": "go2_train.mjb", "plan_pool_file": "pool.npz",
+              "leg_dynamics_file": "leg_dynamics.npz"}  # what a2i-train pack writes
+
 
 def measure(n_envs: int, threads: int, steps: int, pack: Path | None = None) -> float:
-    files = {} if pack is None else {"model_file": str(pack / "go2_train.mjb"),
-                                     "plan_pool_file": str(pack / "pool.npz"),
-                                     "leg_dynamics_file": str(pack / "leg_dynamics.npz")}
+    files = {} if pack is None else {k: str(pack / f) for k, f in PACK_FILES.items()}
     env = TripodEnv(EnvConfig(num_envs=n_envs, plans_per_leg=1, seed=0, threads=threads, **files))
     rng = np.random.default_rng(0)
     for _ in range(5):
@@ -46,6 +47,10 @@ def main() -> None:
         raise SystemExit(f"bench_policy_env: --threads {a.threads!r}: comma-separated integers")
     if not counts or min(counts) < 1 or a.envs < 1 or a.steps < 1:
         raise SystemExit("bench_policy_env: --threads, --envs and --steps must be >= 1")
+    missing = [f for f in PACK_FILES.values() if a.pack and not (a.pack / f).is_file()]
+    if missing:
+        raise SystemExit(f"bench_policy_env: {a.pack} lacks {', '.join(missing)} "
+                         "(write it with a2i-train pack)")
     res = {th: measure(a.envs, th, a.steps, a.pack) for th in counts}
     base = res[counts[0]]
     print(f"{os.cpu_count()} CPUs; {a.envs} envs, {a.steps} steps per thread count")

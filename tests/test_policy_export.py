@@ -264,7 +264,7 @@ def test_cli_missing_inputs_exit_2_with_one_line(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
-def test_tripod_device_is_checked_before_anything_is_built(tmp_path, capsys):
+def test_tripod_device_is_checked_before_anything_is_built(tmp_path):
     """--device: cpu, or a GPU this machine has; anything else exits 1 with one line and
     writes nothing."""
     import torch
