@@ -124,7 +124,9 @@ class LegTarget:
 class LiftSchedule:
     """Phase durations (s), the lifted leg's PD gains, and the excitation settings.
 
-    shift, lift, hold, lower: s. kp N m/rad, kd N m s/rad: gains of the lifted leg's motors
+    shift, lift, hold, lower: s. shift_by_leg: {leg: s} the shift of those legs' lifts where it
+    is not ``shift`` (None: every leg's is ``shift``; v25: the front legs' 2 s, the rear legs'
+    the training's 1 s). kp N m/rad, kd N m s/rad: gains of the lifted leg's motors
     while targets exist. t_r (s), n_basis, periods, seed, ground_clearance (m):
     :class:`calib.excitation.ExcitationConfig` of each leg's plan (other settings at their
     defaults). A policy JSON without ``ground_clearance`` was trained on plans with the
@@ -133,6 +135,7 @@ class LiftSchedule:
     """
 
     shift: float = 1.0
+    shift_by_leg: dict[str, float] | None = None
     lift: float = 0.6
     hold: float = 0.5
     lower: float = 0.6
@@ -150,6 +153,17 @@ class LiftSchedule:
             v = getattr(self, k)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{k} must be a positive duration (s), got {v}")
+        if self.shift_by_leg is not None:
+            if not isinstance(self.shift_by_leg, Mapping):
+                raise ValueError(
+                    f"shift_by_leg must map legs to seconds, got {self.shift_by_leg!r}")
+            for leg, v in self.shift_by_leg.items():
+                check_leg(leg)
+                if isinstance(v, bool) or not (isinstance(v, (int, float)) and np.isfinite(v)
+                                               and v > 0):
+                    raise ValueError(f"shift_by_leg[{leg}] must be a positive duration (s), "
+                                     f"got {v!r}")
+            self.shift_by_leg = {leg: float(v) for leg, v in self.shift_by_leg.items()}
         if not (np.isfinite(self.kp) and self.kp > 0 and np.isfinite(self.kd) and self.kd >= 0):
             raise ValueError(f"kp must be > 0 and kd >= 0 (finite), got kp {self.kp}, kd {self.kd}")
         if not (np.isfinite(self.ground_clearance) and self.ground_clearance >= 0):
@@ -171,8 +185,14 @@ class LiftSchedule:
         return cls(**{k: d[k] for k in d})
 
     def to_metadata(self) -> dict:
-        """The JSON ``lift_schedule`` object (plain floats and ints)."""
-        return {k: v for k, v in asdict(self).items() if not k.startswith("_")}
+        """The JSON ``lift_schedule`` object (plain floats and ints; ``shift_by_leg`` only
+        where set)."""
+        return {k: v for k, v in asdict(self).items()
+                if not k.startswith("_") and not (k == "shift_by_leg" and v is None)}
+
+    def shift_of(self, leg: str) -> float:
+        """The shift phase of ``leg``'s lift, s."""
+        return float((self.shift_by_leg or {}).get(check_leg(leg), self.shift))
 
     # ------------------------------------------------------------------ plans and phases
     def excitation_config(self, leg: str) -> ExcitationConfig:
@@ -198,8 +218,8 @@ class LiftSchedule:
 
     def durations(self, leg: str) -> np.ndarray:
         """(5,) s: shift, lift, hold, excite, lower."""
-        return np.array([self.shift, self.lift, self.hold, self.excitation_config(leg).duration,
-                         self.lower])
+        return np.array([self.shift_of(leg), self.lift, self.hold,
+                         self.excitation_config(leg).duration, self.lower])
 
     def total(self, leg: str) -> float:
         """Time from the command to the start of ``done``, s."""

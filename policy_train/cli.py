@@ -406,6 +406,32 @@ def _kp_kd(text: str, example: str) -> tuple[float, float]:
     return kp, kd
 
 
+def _shift(text: str) -> float | dict[str, float]:
+    """``2.0`` (every leg) or ``FL=2,FR=2`` (those legs), seconds >= 0.05."""
+    from calib.joints import check_leg
+
+    def seconds(v: str) -> float:
+        try:
+            x = float(v)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected seconds, got {v!r}") from None
+        if not (x >= 0.05 and x < float("inf")):
+            raise argparse.ArgumentTypeError(f"must be >= 0.05 s, got {v}")
+        return x
+
+    if "=" not in text:
+        return seconds(text)
+    out = {}
+    for item in text.split(","):
+        leg, _, v = item.partition("=")
+        try:
+            leg = check_leg(leg.strip())
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(str(e)) from None
+        out[leg] = seconds(v)
+    return out
+
+
 def _gains(text: str) -> tuple[float, float]:
     """argparse type: ``KP,KD`` (N m/rad, N m s/rad), as the lift schedule accepts them."""
     from deploy.lift_schedule import LiftSchedule
@@ -650,10 +676,11 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--t-r", type=_number(0.05, 5.0, "must be in [0.05, 5) s"), default=None,
                    metavar="S", help="the excitation's time constant t_r (s), inside the range "
                    "the policy trained against; slower motions shake the tripod less")
-    g.add_argument("--shift", type=_number(0.05, float("inf"), "must be >= 0.05 s"), default=None,
-                   metavar="S", help="the shift phase (s): how long the policy has, every foot "
-                   "down, to move the body over the three it will stand on; at least the "
-                   "training's"),
+    g.add_argument("--shift", type=_shift, default=None, metavar="S|LEG=S[,LEG=S]",
+                   help="the shift phase (s): how long the policy has, every foot down, to "
+                   "move the body over the three it will stand on; at least the training's. "
+                   "One value for every leg, or per leg (FL=2,FR=2: those legs' lifts, the "
+                   "others as they were)"),
     r = sub.add_parser("refine", help="add a linear residual on the body's rate and tilt to an "
                        "exported policy's lifts of one leg, tuned by evolution strategies")
     r.add_argument("onnx", help="the exported policy (its .json beside it); a refined policy "

@@ -191,6 +191,8 @@ class EnvConfig:
     # feedforward; deploy.leg_dynamics): a quarter of the lag, the executed CN ~1.05 not 1.11
     lift_feedforward: bool = True
     shift_s: float = 1.0
+    # {leg: s} lifts whose shift is not shift_s (the evaluation plays the JSON's shift_by_leg)
+    shift_by_leg: dict | None = None
     lift_s: float = 0.6
     hold_s: float = 0.5
     lower_s: float = 0.6

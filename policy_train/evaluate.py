@@ -80,6 +80,7 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
     cfg.kp, cfg.kd = (float(g[0]) if not np.ptp(g) else tuple(map(float, g)) for g in (kp, kd))
     sched = LiftSchedule.from_metadata(meta["lift_schedule"])
     cfg.shift_s, cfg.lift_s, cfg.hold_s, cfg.lower_s = sched.shift, sched.lift, sched.hold, sched.lower
+    cfg.shift_by_leg = sched.shift_by_leg
     cfg.lift_kp, cfg.lift_kd, cfg.lift_feedforward = sched.kp, sched.kd, sched.feedforward
     pool = PlanPool.from_plans([sched.plan(leg) for leg in MODEL_LEGS], cfg.physics_dt)
     env = TripodEnv(cfg, plan_pool=pool)
@@ -313,8 +314,12 @@ def _derived(meta: dict) -> str:
         changed.append(f"the lifted leg at kp {sched.get('kp'):g} / kd {sched.get('kd'):g}")
     if d.get("t_r") not in (None, sched.get("t_r")):
         changed.append(f"the excitation at t_r {sched.get('t_r'):g} s (was {d['t_r']:g})")
-    if d.get("shift") not in (None, sched.get("shift")):
-        changed.append(f"a shift of {sched.get('shift'):g} s (was {d['shift']:g})")
+    by_leg = sched.get("shift_by_leg") or {}
+    if d.get("shift") not in (None, sched.get("shift")) or by_leg != (d.get("shift_by_leg") or {}):
+        legs = ", ".join(f"{leg} {v:g} s" for leg, v in sorted(by_leg.items()))
+        changed.append(f"a shift of {sched.get('shift'):g} s" + (f" ({legs})" if legs else "")
+                       + f" (was {d['shift']:g}" + (" per leg" if d.get("shift_by_leg") else "")
+                       + ")")
     # no "then": a refined policy keeps the derive record of the policy it was refined from
     return (f"; its deploy settings from `a2i-train derive` on `{d.get('policy')}`: "
             f"{', '.join(changed) or 'none changed'}")

@@ -13,13 +13,14 @@ import datetime
 import io
 import json
 import subprocess
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from calib.atomic import write_bytes_atomic, write_text_atomic
-from calib.joints import SDK_JOINT_NAMES, model_to_sdk
+from calib.joints import SDK_JOINT_NAMES, check_leg, model_to_sdk
 from deploy.lift_schedule import LiftSchedule
 from deploy.observation import OBS_SIZE
 from policy_train.config import TrainConfig
@@ -105,7 +106,7 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
     e = cfg.env
     default = cj.default_crouch("sdk")
     lo, hi = e.soft_limits(cj.SDK_LEGS)
-    sched = LiftSchedule(shift=e.shift_s, lift=e.lift_s, hold=e.hold_s, lower=e.lower_s,
+    sched = LiftSchedule(shift=e.shift_s, shift_by_leg=e.shift_by_leg, lift=e.lift_s, hold=e.hold_s, lower=e.lower_s,
                          kp=e.lift_kp, kd=e.lift_kd, t_r=EVAL_T_R, n_basis=e.n_basis,
                          periods=EVAL_PERIODS, seed=0, ground_clearance=e.ground_clearance,
                          feedforward=e.lift_feedforward)
@@ -250,9 +251,11 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     ``train_config``'s ``t_r_range``: it never balanced against other speeds); shift: the
     shift phase (s, the JSON's ``lift_schedule``: the policy alone, every foot down, moving the
     body over the three feet it will stand on), at least the training's ``shift_s`` (the policy
-    never lifted sooner) and at most 5 s.
-    The JSON's ``derived_from`` names the source, its commit, the gains, t_r and shift it had; its
-    evaluation figures are dropped (they were measured with the source's gains).
+    never lifted sooner) and at most 5 s: one value for every leg, or {leg: s} for those legs'
+    lifts (the JSON's ``shift_by_leg``; the other legs keep theirs).
+    The JSON's ``derived_from`` names the source, its commit, the gains, t_r and shift (and
+    ``shift_by_leg``) it had; its evaluation figures are dropped (they were measured with the
+    source's gains).
     ValueError on a source that is not an exported policy or on gains deploy refuses."""
     from deploy.policy import PolicyMeta
 
@@ -270,7 +273,9 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     meta["derived_from"] = {"policy": src.name, "commit": meta.get("commit"),
                             "kp": meta["kp"], "kd": meta["kd"],
                             "lift_gains": [sched.kp, sched.kd], "t_r": sched.t_r,
-                            "shift": sched.shift}
+                            "shift": sched.shift,
+                            **({"shift_by_leg": sched.shift_by_leg} if sched.shift_by_leg
+                               else {})}
     if gains is not None:
         kp, kd = (_per_joint(g, name) for g, name in zip(gains, ("kp", "kd"), strict=True))
         if not (np.all(np.isfinite(kp + kd)) and np.all(kp > 0) and np.all(kd >= 0)):
@@ -288,10 +293,20 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
         meta["lift_schedule"] = {**meta["lift_schedule"], "t_r": float(t_r)}
     if shift is not None:
         lo = meta["train_config"]["env"].get("shift_s", sched.shift)
-        if not (np.isfinite(shift) and lo <= shift <= 5.0):
-            raise ValueError(f"shift {shift} s is outside {lo}-5 s (the policy trained with a "
-                             f"shift of {lo} s and never lifted sooner)")
-        meta["lift_schedule"] = {**meta["lift_schedule"], "shift": float(shift)}
+        by_leg = dict(shift) if isinstance(shift, Mapping) else {"": shift}
+        for leg, v in by_leg.items():
+            if not (np.isfinite(v) and lo <= v <= 5.0):
+                raise ValueError(f"shift {v} s{f' of {leg}' if leg else ''} is outside {lo}-5 s "
+                                 f"(the policy trained with a shift of {lo} s and never lifted "
+                                 "sooner)")
+        ls = dict(meta["lift_schedule"])
+        if isinstance(shift, Mapping):
+            ls["shift_by_leg"] = {**(ls.get("shift_by_leg") or {}),
+                                  **{check_leg(g): float(v) for g, v in shift.items()}}
+        else:  # every leg
+            ls["shift"] = float(shift)
+            ls.pop("shift_by_leg", None)
+        meta["lift_schedule"] = ls
     meta.update(name=name, onnx=f"{name}.onnx", commit=git_commit(), evaluation={},
                 created_utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
     meta.pop("evaluation_nominal", None)

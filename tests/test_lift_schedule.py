@@ -62,6 +62,21 @@ def test_metadata_round_trip_and_errors(sched):
         sched.targets("XX", 1.0, Q_START)
 
 
+def test_shift_per_leg():
+    """``shift_by_leg``: those legs' shift phase, the others ``shift``; the JSON keeps the key
+    only where it is set; bad values are refused with the key named."""
+    s = LiftSchedule(shift=1.0, shift_by_leg={"FL": 2, "FR": 2.5}, t_r=0.3, periods=1, n_basis=6)
+    assert [s.shift_of(g) for g in ("FL", "FR", "RL", "RR")] == [2.0, 2.5, 1.0, 1.0]
+    assert s.durations("FR")[0] == 2.5 and s.durations("RL")[0] == 1.0
+    assert s.phase("FL", 1.5) == "shift" and s.phase("RL", 1.5) == "lift"
+    assert s.total("FR") - s.total("RR") == pytest.approx(1.5)
+    assert LiftSchedule.from_metadata(s.to_metadata()).shift_by_leg == {"FL": 2.0, "FR": 2.5}
+    assert "shift_by_leg" not in LiftSchedule().to_metadata()
+    for bad in ({"XX": 2.0}, {"FL": 0.0}, {"FL": True}, {"FL": "2"}, [("FL", 2.0)]):
+        with pytest.raises(ValueError):
+            LiftSchedule(shift_by_leg=bad)
+
+
 def test_ground_clearance_reaches_the_plans():
     # a JSON written before the field existed means the generator's default (v1-v4 plans)
     old = {k: v for k, v in LiftSchedule().to_metadata().items() if k != "ground_clearance"}

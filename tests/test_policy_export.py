@@ -464,6 +464,42 @@ def test_derive_sets_the_shift_no_shorter_than_trained(exported, tmp_path, capsy
         assert "outside" in capsys.readouterr().err and not (tmp_path / "h.json").exists()
 
 
+def test_derive_sets_a_shift_per_leg(exported, tmp_path, capsys):
+    """`derive --shift FL=2,FR=2` (v25): those legs' lifts get 2 s, the others keep the JSON's
+    shift; the evaluation plays each leg's, the page says so; a later `--shift 3` sets every
+    leg's again; a leg's shift shorter than the training's, or an unknown leg, is refused."""
+    from policy_train.cli import main
+    from policy_train.evaluate import _derived, evaluation_env
+
+    d, _ = exported
+    src = json.loads((d / "pol.json").read_text())
+    trained = src["train_config"]["env"]["shift_s"]
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"),
+                 "--shift", "FL=2,FR=2"]) == 0
+    meta = json.loads((tmp_path / "g.json").read_text())
+    assert meta["lift_schedule"] == {**src["lift_schedule"],
+                                     "shift_by_leg": {"FL": 2.0, "FR": 2.0}}
+    sched = LiftSchedule.from_metadata(meta["lift_schedule"])
+    assert [sched.shift_of(g) for g in ("FL", "FR", "RL", "RR")] == [2.0, 2.0, trained, trained]
+    env, _ = evaluation_env(meta, ("FL", "RL"), 2, seed=1, nominal=True)
+    assert env.lift_dur[:, 0].tolist() == [2.0, 2.0, trained, trained]
+    assert _derived(meta).endswith(f"a shift of {trained:g} s (FL 2 s, FR 2 s) (was {trained:g})")
+    assert main(["derive", str(tmp_path / "g.onnx"), "--out", str(tmp_path / "h"),
+                 "--shift", "3"]) == 0
+    again = json.loads((tmp_path / "h.json").read_text())
+    assert "shift_by_leg" not in again["lift_schedule"] and again["lift_schedule"]["shift"] == 3.0
+    assert again["derived_from"]["shift_by_leg"] == {"FL": 2.0, "FR": 2.0}
+    capsys.readouterr()
+    argv = ["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "k"), "--shift"]
+    assert main([*argv, f"RL={trained - 0.1}"]) == 2  # the policy's limit
+    assert "shift 0.9 s of RL is outside" in capsys.readouterr().err
+    for bad, why in (("XX=2", "unknown leg 'XX'"), ("FL=2,RR", "expected seconds")):
+        with pytest.raises(SystemExit) as exc:  # argparse's
+            main([*argv, bad])
+        assert exc.value.code == 2 and why in capsys.readouterr().err
+    assert not (tmp_path / "k.json").exists()
+
+
 @pytest.mark.parametrize(("extra", "hint"), [
     ([], "--gains"), (["--shift", "0"], "--shift"), (["--gains", "0,0.5"], "--gains"), (["--gains", "20"], "--gains"),
     (["--gains", "nan,1"], "--gains"), (["--gains", "29,0.7/23,0.5"], "--gains"),
