@@ -437,6 +437,17 @@ def test_derive_sets_the_excitation_speed_within_the_trained_range(exported, tmp
     assert "outside" in capsys.readouterr().err and not (tmp_path / "h.json").exists()
 
 
+def _derive_shift(d: Path, tmp_path: Path, shift: str) -> tuple[dict, float, dict]:
+    """`derive --shift SHIFT` of the exported policy in ``d`` to ``tmp_path / "g"``: (the
+    source's JSON, its training's shift, the derived JSON)."""
+    from policy_train.cli import main
+
+    src = json.loads((d / "pol.json").read_text())
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"),
+                 "--shift", shift]) == 0
+    return src, src["train_config"]["env"]["shift_s"], json.loads((tmp_path / "g.json").read_text())
+
+
 def test_derive_sets_the_shift_no_shorter_than_trained(exported, tmp_path, capsys):
     """`derive --shift 2`: the JSON's lift schedule gives the policy 2 s to move the body before
     the lift (the evaluation plays it), the source's shift named in ``derived_from``; a shift
@@ -445,11 +456,7 @@ def test_derive_sets_the_shift_no_shorter_than_trained(exported, tmp_path, capsy
     from policy_train.evaluate import evaluation_env
 
     d, _ = exported
-    src = json.loads((d / "pol.json").read_text())
-    trained = src["train_config"]["env"]["shift_s"]
-    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"),
-                 "--shift", "2"]) == 0
-    meta = json.loads((tmp_path / "g.json").read_text())
+    src, trained, meta = _derive_shift(d, tmp_path, "2")
     assert meta["lift_schedule"] == {**src["lift_schedule"], "shift": 2.0}
     assert meta["derived_from"]["shift"] == src["lift_schedule"]["shift"] == trained
     env, _ = evaluation_env(meta, ("FL",), 1, seed=1, nominal=True)
@@ -472,11 +479,7 @@ def test_derive_sets_a_shift_per_leg(exported, tmp_path, capsys):
     from policy_train.evaluate import _derived, evaluation_env
 
     d, _ = exported
-    src = json.loads((d / "pol.json").read_text())
-    trained = src["train_config"]["env"]["shift_s"]
-    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"),
-                 "--shift", "FL=2,FR=2"]) == 0
-    meta = json.loads((tmp_path / "g.json").read_text())
+    src, trained, meta = _derive_shift(d, tmp_path, "FL=2,FR=2")
     assert meta["lift_schedule"] == {**src["lift_schedule"],
                                      "shift_by_leg": {"FL": 2.0, "FR": 2.0}}
     sched = LiftSchedule.from_metadata(meta["lift_schedule"])
