@@ -432,8 +432,9 @@ class TripodEnv:
             self.lift_excite[li] = exc
             hold = rng.uniform(*cfg.hold_range, len(li))
             d = np.empty((len(li), 5))
-            shift = np.array([(cfg.shift_by_leg or {}).get(leg, cfg.shift_s) for leg in MODEL_LEGS])
-            d[:, 0], d[:, 1], d[:, 2], d[:, 4] = shift[legs[lifted]], cfg.lift_s, cfg.hold_s, cfg.lower_s
+            shift = np.array([(cfg.shift_by_leg or {}).get(g, cfg.shift_s) for g in MODEL_LEGS])
+            d[:, 0], d[:, 2], d[:, 4] = shift[legs[lifted]], cfg.hold_s, cfg.lower_s
+            d[:, 1] = cfg.lift_s
             d[:, 3] = np.where(exc, self.pool.duration[plans], hold)
             self.lift_dur[li] = d
             self.lift_q_start[li] = self.qpos[li[:, None], 7 + 3 * legs[lifted][:, None] + np.arange(3)]

@@ -106,8 +106,8 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
     e = cfg.env
     default = cj.default_crouch("sdk")
     lo, hi = e.soft_limits(cj.SDK_LEGS)
-    sched = LiftSchedule(shift=e.shift_s, shift_by_leg=e.shift_by_leg, lift=e.lift_s, hold=e.hold_s, lower=e.lower_s,
-                         kp=e.lift_kp, kd=e.lift_kd, t_r=EVAL_T_R, n_basis=e.n_basis,
+    sched = LiftSchedule(shift=e.shift_s, shift_by_leg=e.shift_by_leg, lift=e.lift_s,
+                         hold=e.hold_s, lower=e.lower_s, kp=e.lift_kp, kd=e.lift_kd, t_r=EVAL_T_R, n_basis=e.n_basis,
                          periods=EVAL_PERIODS, seed=0, ground_clearance=e.ground_clearance,
                          feedforward=e.lift_feedforward)
     fl = lambda a: [float(x) for x in np.asarray(a, dtype=float)]
