@@ -18,9 +18,10 @@
                                     on another model of the Go2: sim to sim)
   a2i-train compare A.json B.json  (two transfer runs on the same draws, episode by episode)
   a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD]
-                   [--t-r S] [--shift S]
+                   [--t-r S] [--shift S|LEG=S[,LEG=S]]
                                    (the same network with other deploy gains, excitation speed
-                                    or time to shift the body before the lift)
+                                    or time to shift the body before the lift, every leg's
+                                    or some legs')
   a2i-train refine policies/NAME.onnx --out policies/OTHER [--generations 40] [--leg FL]
                    [--pairs 4] [--episodes 24] [--fail-cost 0.1] [--dr FIELD=VALUE ...]
                    [--seed 1000] [--state F] [--resume]
@@ -680,7 +681,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="the shift phase (s): how long the policy has, every foot down, to "
                    "move the body over the three it will stand on; at least the training's. "
                    "One value for every leg, or per leg (FL=2,FR=2: those legs' lifts, the "
-                   "others as they were)"),
+                   "others as they were)")
     r = sub.add_parser("refine", help="add a linear residual on the body's rate and tilt to an "
                        "exported policy's lifts of one leg, tuned by evolution strategies")
     r.add_argument("onnx", help="the exported policy (its .json beside it); a refined policy "
