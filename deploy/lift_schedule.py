@@ -20,7 +20,10 @@ done      the policy alone again (deploy goes on to LOWER -> STAND; training cle
 While targets exist, the lifted leg's three motors get ``q_des``, ``dq_des`` and this
 schedule's ``kp`` / ``kd`` (the policy's actions for that leg are ignored, but they still feed
 ``previous_actions``), and, with ``feedforward``, the torque ``tau`` that the planned motion
-takes with the base still (:mod:`deploy.leg_dynamics`), within the motors' effort limits.
+takes with the base still (:mod:`deploy.leg_dynamics`), within the motors' effort limits. With
+``adapt``, whoever runs the motors (``deploy.session``, the free-base runs, the evaluation) adds
+the torque of :class:`deploy.tracking_adapter.TrackingAdapter` in excite and lower: what the
+leg's tracking shows the model lacks, identified during the excitation.
 Joint triples are (hip, thigh, calf) in the leg's own URDF signs, rad.
 """
 
@@ -109,7 +112,8 @@ class LegTarget:
     """Targets of the lifted leg's three motors now. q_des rad, dq_des rad/s, kp N m/rad, kd
     N m s/rad (hip, thigh, calf; leg's own URDF signs); phase one of :data:`PHASES`.
     ``q_des``/``dq_des`` are None in shift and done (the policy commands the leg). tau: the
-    feed-forward torque, N m, or None (no ``feedforward``, or no targets).
+    feed-forward torque, N m, or None (no ``feedforward``, or no targets). ddq_des: the plan's
+    acceleration, rad/s^2, where it has targets (the tracking adapter's feature).
     """
 
     phase: str
@@ -118,6 +122,7 @@ class LegTarget:
     kp: float
     kd: float
     tau: np.ndarray | None = None
+    ddq_des: np.ndarray | None = None
 
 
 @dataclass
@@ -131,7 +136,10 @@ class LiftSchedule:
     :class:`calib.excitation.ExcitationConfig` of each leg's plan (other settings at their
     defaults). A policy JSON without ``ground_clearance`` was trained on plans with the
     generator's default. feedforward: also command the planned motion's inverse-dynamics
-    torque (:class:`deploy.leg_dynamics.LegDynamics`); a JSON without it has none.
+    torque (:class:`deploy.leg_dynamics.LegDynamics`); a JSON without it has none. adapt: from
+    2 s into the excitation on, also command the torque the leg's tracking shows the model
+    lacks (:class:`deploy.tracking_adapter.TrackingAdapter`: damping, friction, inertia, a
+    torque constant off); a JSON without it has none.
     """
 
     shift: float = 1.0
@@ -147,6 +155,7 @@ class LiftSchedule:
     seed: int = 0
     ground_clearance: float = ExcitationConfig.ground_clearance
     feedforward: bool = False
+    adapt: bool = False
 
     def __post_init__(self) -> None:
         for k in ("shift", "lift", "hold", "lower"):
@@ -168,10 +177,11 @@ class LiftSchedule:
             raise ValueError(f"kp must be > 0 and kd >= 0 (finite), got kp {self.kp}, kd {self.kd}")
         if not (np.isfinite(self.ground_clearance) and self.ground_clearance >= 0):
             raise ValueError(f"ground_clearance must be >= 0 m, got {self.ground_clearance}")
-        if not isinstance(self.feedforward, bool):
-            # a bad JSON value, reported like the others (the loaders catch ValueError)
-            raise ValueError(  # noqa: TRY004
-                f"feedforward must be true or false, got {self.feedforward!r}")
+        for k in ("feedforward", "adapt"):
+            if not isinstance(getattr(self, k), bool):
+                # a bad JSON value, reported like the others (the loaders catch ValueError)
+                raise ValueError(  # noqa: TRY004
+                    f"{k} must be true or false, got {getattr(self, k)!r}")
         self._plans: dict[str, ExcitationPlan] = {}
 
     # ------------------------------------------------------------------ metadata
@@ -255,10 +265,10 @@ class LiftSchedule:
         te = t - d[:3].sum()
         q, dq, ph = blend_targets(t, d, qs[None], plan.q0[None], plan.positions(te),
                                   plan.velocities(te))
+        ddq = blend_accelerations(t, d, qs[None], plan.q0[None], plan.accelerations(te))
         tau = None
         if self.feedforward:
-            ddq = blend_accelerations(t, d, qs[None], plan.q0[None], plan.accelerations(te))
-            tau = self.feedforward_torque(leg, q, dq, ddq, gravity_b)
+            tau = self.feedforward_torque(leg, q, dq, np.nan_to_num(ddq), gravity_b)
         out = []
         for i, p in enumerate(ph):
             name = PHASES[int(p)]
@@ -266,7 +276,7 @@ class LiftSchedule:
                 out.append(LegTarget(name, None, None, self.kp, self.kd))
             else:
                 out.append(LegTarget(name, q[i], dq[i], self.kp, self.kd,
-                                     None if tau is None else tau[i]))
+                                     None if tau is None else tau[i], ddq[i]))
         return out
 
     @staticmethod

@@ -42,6 +42,7 @@ Joint vectors in SDK order (FR, FL, RR, RL), rad, rad/s, N m/rad, N m s/rad.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 from collections import deque
@@ -50,10 +51,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.joints import LIE_POSE_LEG, check_leg, full_pose, sdk_indices
+from calib.joints import EFFORT_LIMIT, LIE_POSE_LEG, check_leg, full_pose, sdk_indices
 from deploy.lift_schedule import COMMANDS_PER_TICK
 from deploy.observation import build_observation, projected_gravity
 from deploy.supervisor import DAMP_KD, SafetySupervisor
+from deploy.tracking_adapter import TrackingAdapter
 
 __all__ = ["Command", "Session", "SessionConfig", "State", "TickInput"]
 
@@ -223,6 +225,8 @@ class Session:
         self._requested: str | None = None
         self._current: LegOutcome | None = None
         self._stance_used = False  # a leg was lifted since the last stand-up
+        self._adapter: TrackingAdapter | None = None  # the lifted leg's, where the schedule's adapt
+        self._adapted = np.zeros(3)
         self.lie_pose = full_pose(LIE_POSE_LEG, order="sdk")
         self.phase = ""
         self.last_command: Command | None = None
@@ -406,6 +410,9 @@ class Session:
             self.policy = self.policies[leg]
             self.meta = self.policy.meta
         self.policy.reset(inp.q)
+        sched = self.meta.schedule
+        self._adapter = TrackingAdapter(sched.kp, sched.kd) if sched.adapt else None
+        self._adapted = np.zeros(3)  # the adapter's torque in the frame the motors hold
         self._stance_used = True
         self.phase = ""
         self._k_lift = self.k + 1  # the lift command is given at TRIPOD's first tick
@@ -428,7 +435,32 @@ class Session:
             self._q_start = q[idx].copy()  # latched at the first tick of lift
         q_start = self._q_start if self._q_start is not None else q[idx]
         gravity = projected_gravity(inp.quat) if inp.quat is not None else None
-        return sched.targets_at(lift_leg, ts, q_start, gravity)
+        targets = sched.targets_at(lift_leg, ts, q_start, gravity)
+        if self._adapter is not None:
+            targets = self._adapt(lift_leg, ts, targets, inp)
+        return targets
+
+    def _adapt(self, lift_leg: str, ts: np.ndarray, targets: list, inp: TickInput) -> list:
+        """The tracking adapter (the schedule's ``adapt``): this tick's measurement of the
+        lifted leg against its plan now (the tick's first frame), then each frame of the
+        excitation and the lowering with the fitted torque added to its feed-forward."""
+        t0 = float(self.meta.schedule.durations(lift_leg)[:3].sum())
+        idx = sdk_indices(lift_leg)
+        now = targets[0]
+        if now.phase == "excite" and inp.dq is not None:
+            model = now.tau if now.tau is not None else self._zeros[:3]
+            self._adapter.observe(ts[0] - t0, now.q_des, now.dq_des, now.ddq_des,
+                                  np.asarray(inp.q, dtype=float)[idx],
+                                  np.asarray(inp.dq, dtype=float)[idx], model, self._adapted)
+        out = []
+        for t, lt in zip(ts, targets):
+            if lt.phase in ("excite", "lower"):
+                model = lt.tau if lt.tau is not None else self._zeros[:3]
+                self._adapted = self._adapter.torque(t - t0, lt.dq_des, lt.ddq_des, model)[0]
+                lt = dataclasses.replace(
+                    lt, tau=np.clip(model + self._adapted, -EFFORT_LIMIT, EFFORT_LIMIT))
+            out.append(lt)
+        return out
 
     def _policy_command(self, inp: TickInput, lift_leg: str | None, frame_targets) -> Command:
         """Policy tick: observation, ONNX, delta target; the lifted leg from

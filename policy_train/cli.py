@@ -18,10 +18,10 @@
                                     on another model of the Go2: sim to sim)
   a2i-train compare A.json B.json  (two transfer runs on the same draws, episode by episode)
   a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD]
-                   [--t-r S] [--shift S|LEG=S[,LEG=S]]
+                   [--t-r S] [--shift S|LEG=S[,LEG=S]] [--[no-]adapt]
                                    (the same network with other deploy gains, excitation speed
                                     or time to shift the body before the lift, every leg's
-                                    or some legs')
+                                    or some legs', or the lifted leg's tracking adapter)
   a2i-train refine policies/NAME.onnx --out policies/OTHER [--generations 40] [--leg FL]
                    [--pairs 4] [--episodes 24] [--fail-cost 0.1] [--dr FIELD=VALUE ...]
                    [--seed 1000] [--state F] [--resume]
@@ -212,9 +212,11 @@ def _export(a) -> int:
 def _derive(a) -> int:
     from policy_train.export import derive_policy
 
-    if a.gains is None and a.lift_gains is None and a.t_r is None and a.shift is None:
-        raise SystemExit("a2i-train derive: give --gains, --lift-gains, --t-r and/or --shift")
-    onnx_path, json_path = derive_policy(a.onnx, a.out, a.gains, a.lift_gains, a.t_r, a.shift)
+    if (a.gains, a.lift_gains, a.t_r, a.shift, a.adapt) == (None,) * 5:
+        raise SystemExit("a2i-train derive: give --gains, --lift-gains, --t-r, --shift and/or "
+                         "--[no-]adapt")
+    onnx_path, json_path = derive_policy(a.onnx, a.out, a.gains, a.lift_gains, a.t_r, a.shift,
+                                         a.adapt)
     print(f"wrote {onnx_path} and {json_path} (the network of {a.onnx})")
     return 0
 
@@ -682,6 +684,10 @@ def main(argv: list[str] | None = None) -> int:
                    "move the body over the three it will stand on; at least the training's. "
                    "One value for every leg, or per leg (FL=2,FR=2: those legs' lifts, the "
                    "others as they were)")
+    g.add_argument("--adapt", action=argparse.BooleanOptionalAction, default=None,
+                   help="whether the lifted leg's tracking adapter runs: from 2 s into the "
+                   "excitation, the torque its tracking shows the leg's model lacks (damping, "
+                   "friction, inertia, torque constant) is fed forward (default: the source's)")
     r = sub.add_parser("refine", help="add a linear residual on the body's rate and tilt to an "
                        "exported policy's lifts of one leg, tuned by evolution strategies")
     r.add_argument("onnx", help="the exported policy (its .json beside it); a refined policy "

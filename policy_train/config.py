@@ -190,6 +190,10 @@ class EnvConfig:
     # also the planned motion's inverse-dynamics torque on the lifted leg (LiftSchedule's
     # feedforward; deploy.leg_dynamics): a quarter of the lag, the executed CN ~1.05 not 1.11
     lift_feedforward: bool = True
+    # the lifted leg's tracking adapter (LiftSchedule's adapt; deploy.tracking_adapter): the
+    # evaluation plays the JSON's; training has not used it (the network never sees the lifted
+    # leg's motors)
+    lift_adapt: bool = False
     shift_s: float = 1.0
     # {leg: s} lifts whose shift is not shift_s (the evaluation plays the JSON's shift_by_leg)
     shift_by_leg: dict | None = None

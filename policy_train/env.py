@@ -24,6 +24,7 @@ from mujoco.batch import Batch
 
 from calib.excitation import ExcitationConfig, plan_excitation
 from calib.joints import (
+    EFFORT_LIMIT,
     MODEL_LEGS,
     default_crouch,
     model_to_sdk,
@@ -38,6 +39,7 @@ from deploy.observation import (
     default_terms,
     projected_gravity,
 )
+from deploy.tracking_adapter import TrackingAdapter
 from policy_train.config import OBS_NOISE, EnvConfig
 from policy_train.model import TrainModel
 from policy_train.rewards import compute_rewards
@@ -267,6 +269,10 @@ class TripodEnv:
         self.lift_excite = np.zeros(N, dtype=bool)
         self.lift_latched = np.zeros(N, dtype=bool)
         self.lift_dur = z((N, 5))
+        # the lifted leg's tracking adapter (cfg.lift_adapt), one row per env, and the torque it
+        # added in the physics step just played (what the motors held at the next measurement)
+        self.adapter = TrackingAdapter(cfg.lift_kp, cfg.lift_kd, N) if cfg.lift_adapt else None
+        self.lift_applied = z((N, 3))
         self.phase = np.zeros(N, dtype=int)
         self.episode_length_buf = np.zeros(N, dtype=int)
         self.push_timer = z(N)
@@ -439,12 +445,17 @@ class TripodEnv:
             self.lift_dur[li] = d
             self.lift_q_start[li] = self.qpos[li[:, None], 7 + 3 * legs[lifted][:, None] + np.arange(3)]
             self.lift_latched[li] = False
+            self.lift_applied[li] = 0.0
+            if self.adapter is not None:
+                self.adapter.reset(li)
         self.phase[ids] = np.where(lifted, 0, 5)
 
     # ------------------------------------------------------------------ lifted leg
-    def _lift_targets(self, t: np.ndarray):
+    def _lift_targets(self, t: np.ndarray, tick: bool = False):
         """(ids, joint idx (n, 3), q_des, dq_des, tau (n, 3) N m or None, phase) of envs whose
-        lifted leg is overridden; tau is the feed-forward torque (``cfg.lift_feedforward``)."""
+        lifted leg is overridden; tau is the feed-forward torque (``cfg.lift_feedforward``,
+        plus the tracking adapter's with ``cfg.lift_adapt``). tick: the policy step's first
+        physics step, where the adapter measures the leg (as deploy does once a tick)."""
         act = np.flatnonzero(self.lift_leg >= 0)
         if len(act) == 0:
             return act, None, None, None, None, np.zeros(0, int)
@@ -465,9 +476,10 @@ class TripodEnv:
         qd, dqd, ph = blend_targets(t[act], d, self.lift_q_start[act], q0, q_exc, dq_exc)
         jidx = 3 * self.lift_leg[act][:, None] + np.arange(3)
         tau = None
-        if self.cfg.lift_feedforward:
+        if self.cfg.lift_feedforward or self.adapter is not None:
             ddq_exc = np.where(hold[:, None], 0.0, self.pool.sample_acceleration(k, te))
             ddq = blend_accelerations(t[act], d, self.lift_q_start[act], q0, ddq_exc)
+        if self.cfg.lift_feedforward:
             on = (ph >= 1) & (ph <= 4)
             tau = np.zeros((len(act), 3))
             for li, leg in enumerate(MODEL_LEGS):
@@ -475,7 +487,29 @@ class TripodEnv:
                 if m.any():
                     tau[m] = LiftSchedule.feedforward_torque(leg, qd[m], dqd[m], ddq[m],
                                                              self.gravity_b[act[m]])
+        if self.adapter is not None:
+            tau = self._adapt(act, jidx, te, qd, dqd, ddq, tau, ph, tick)
         return act, jidx, qd, dqd, tau, ph
+
+    def _adapt(self, act, jidx, te, qd, dqd, ddq, model, ph, tick: bool) -> np.ndarray:
+        """The feed-forward ``model`` (None: none) of the envs ``act`` plus the tracking
+        adapter's torque in excite and lower, clipped to the motors' limits; at a ``tick`` the
+        excitation's envs first give the adapter their measurement (deploy's
+        ``Session._adapt``)."""
+        model = np.zeros((len(act), 3)) if model is None else model
+        if tick:
+            m = ph == PHASES.index("excite")
+            if m.any():
+                a, j = act[m][:, None], jidx[m]
+                self.adapter.observe(te[m], qd[m], dqd[m], ddq[m], self.qpos[a, 7 + j],
+                                     self.qvel[a, 6 + j], model[m], self.lift_applied[act[m]],
+                                     rows=act[m])
+        on = (ph == PHASES.index("excite")) | (ph == PHASES.index("lower"))
+        c = np.zeros((len(act), 3))
+        if on.any():
+            c[on] = self.adapter.torque(te[on], dqd[on], ddq[on], model[on], rows=act[on])
+        self.lift_applied[act] = c
+        return np.clip(model + c, -EFFORT_LIMIT, EFFORT_LIMIT)
 
     # ------------------------------------------------------------------ step
     def step(self, actions_sdk: np.ndarray):
@@ -507,7 +541,7 @@ class TripodEnv:
             ctrl[late] = self.past_targets[late, back[late] - 1]
             kp_s, kd_s = kp.copy(), kd.copy()
             t = self.lift_t + s * cfg.physics_dt
-            act, jidx, qd, dqd, tau, ph = self._lift_targets(t)
+            act, jidx, qd, dqd, tau, ph = self._lift_targets(t, tick=s == 0)
             if len(act):
                 self.phase[act] = ph
                 on = (ph >= 1) & (ph <= 4)

@@ -82,6 +82,7 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
     cfg.shift_s, cfg.lift_s, cfg.hold_s, cfg.lower_s = sched.shift, sched.lift, sched.hold, sched.lower
     cfg.shift_by_leg = sched.shift_by_leg
     cfg.lift_kp, cfg.lift_kd, cfg.lift_feedforward = sched.kp, sched.kd, sched.feedforward
+    cfg.lift_adapt = sched.adapt
     pool = PlanPool.from_plans([sched.plan(leg) for leg in MODEL_LEGS], cfg.physics_dt)
     env = TripodEnv(cfg, plan_pool=pool)
     env.obs_terms = meta["observation"]["terms"]  # the JSON's terms, as on board
@@ -320,6 +321,9 @@ def _derived(meta: dict) -> str:
         changed.append(f"a shift of {sched.get('shift'):g} s" + (f" ({legs})" if legs else "")
                        + f" (was {d['shift']:g}" + (" per leg" if d.get("shift_by_leg") else "")
                        + ")")
+    if bool(d.get("adapt", False)) != bool(sched.get("adapt", False)):
+        changed.append("the lifted leg's tracking adapter " + ("on" if sched.get("adapt")
+                                                                else "off"))
     # no "then": a refined policy keeps the derive record of the policy it was refined from
     return (f"; its deploy settings from `a2i-train derive` on `{d.get('policy')}`: "
             f"{', '.join(changed) or 'none changed'}")

@@ -109,7 +109,7 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
     sched = LiftSchedule(shift=e.shift_s, shift_by_leg=e.shift_by_leg, lift=e.lift_s,
                          hold=e.hold_s, lower=e.lower_s, kp=e.lift_kp, kd=e.lift_kd, t_r=EVAL_T_R, n_basis=e.n_basis,
                          periods=EVAL_PERIODS, seed=0, ground_clearance=e.ground_clearance,
-                         feedforward=e.lift_feedforward)
+                         feedforward=e.lift_feedforward, adapt=e.lift_adapt)
     fl = lambda a: [float(x) for x in np.asarray(a, dtype=float)]
     return {
         "schema_version": 1,
@@ -238,7 +238,7 @@ def onnx_bytes(actor: torch.nn.Module, n_in: int) -> bytes:
 
 
 def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
-                  lift_gains=None, t_r=None, shift=None) -> tuple[Path, Path]:
+                  lift_gains=None, t_r=None, shift=None, adapt=None) -> tuple[Path, Path]:
     """Write ``<out_stem>.onnx`` (the source's network, byte for byte) and ``<out_stem>.json``
     (the source's, with other deploy gains or excitation speed) for a policy whose
     checkpoints are gone.
@@ -252,9 +252,12 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     shift phase (s, the JSON's ``lift_schedule``: the policy alone, every foot down, moving the
     body over the three feet it will stand on), at least the training's ``shift_s`` (the policy
     never lifted sooner) and at most 5 s: one value for every leg, or {leg: s} for those legs'
-    lifts (the JSON's ``shift_by_leg``; the other legs keep theirs).
-    The JSON's ``derived_from`` names the source, its commit, the gains, t_r and shift (and
-    ``shift_by_leg``) it had; its evaluation figures are dropped (they were measured with the
+    lifts (the JSON's ``shift_by_leg``; the other legs keep theirs); adapt: whether the lifted
+    leg's tracking adapter runs (the JSON's ``lift_schedule.adapt``;
+    :mod:`deploy.tracking_adapter`: the network never sees the lifted leg's motors, so any
+    policy may have it).
+    The JSON's ``derived_from`` names the source, its commit, the gains, t_r, shift (and
+    ``shift_by_leg``) and adapt it had; its evaluation figures are dropped (they were measured with the
     source's gains).
     ValueError on a source that is not an exported policy or on gains deploy refuses."""
     from deploy.policy import PolicyMeta
@@ -275,7 +278,8 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                             "lift_gains": [sched.kp, sched.kd], "t_r": sched.t_r,
                             "shift": sched.shift,
                             **({"shift_by_leg": sched.shift_by_leg} if sched.shift_by_leg
-                               else {})}
+                               else {}),
+                            "adapt": sched.adapt}
     if gains is not None:
         kp, kd = (_per_joint(g, name) for g, name in zip(gains, ("kp", "kd"), strict=True))
         if not (np.all(np.isfinite(kp + kd)) and np.all(kp > 0) and np.all(kd >= 0)):
@@ -307,6 +311,8 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
             ls["shift"] = float(shift)
             ls.pop("shift_by_leg", None)
         meta["lift_schedule"] = ls
+    if adapt is not None:
+        meta["lift_schedule"] = {**meta["lift_schedule"], "adapt": bool(adapt)}
     meta.update(name=name, onnx=f"{name}.onnx", commit=git_commit(), evaluation={},
                 created_utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
     meta.pop("evaluation_nominal", None)

@@ -36,10 +36,18 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.joints import check_leg, model_indices, model_to_sdk, sdk_indices, sdk_to_model
+from calib.joints import (
+    EFFORT_LIMIT,
+    check_leg,
+    model_indices,
+    model_to_sdk,
+    sdk_indices,
+    sdk_to_model,
+)
 from deploy.lift_schedule import COMMANDS_PER_TICK, PHASES, blend_accelerations, blend_targets
 from deploy.observation import build_observation, projected_gravity
 from deploy.policy import PolicyMeta, PolicyRunner
+from deploy.tracking_adapter import TrackingAdapter
 from policy_train.config import OBS_NOISE
 from sim.calibration_run import MotionRun
 from sim.free_base_run import (
@@ -127,6 +135,7 @@ def run_policy_a2i(
     progress=None,
     commands_per_tick: int = COMMANDS_PER_TICK,
     model_xml: str | None = None,
+    adapt: bool | None = None,
 ) -> tuple[MotionRun, RunHealth]:
     """The A2I calibration of ``leg`` by the tripod policy on the free-base simulated Go2.
 
@@ -190,7 +199,8 @@ def run_policy_a2i(
     zeros3 = np.zeros(3)
     lift_on = False
     q_start = None
-    sched_q = sched_dq = sched_phase = sched_tau = None  # per physics step from the latch on
+    # the schedule per physics step from the latch on
+    sched_q = sched_dq = sched_ddq = sched_phase = sched_tau = None
     k_latch = 0
     fell = False
     phase = -1
@@ -198,6 +208,10 @@ def run_policy_a2i(
     dq_cmd = np.zeros(12)
     kp_c, kd_c = kp_m.copy(), kd_m.copy()
     tau_c = 0.0
+    adapt = sched.adapt if adapt is None else bool(adapt)
+    adapter = TrackingAdapter(sched.kp, sched.kd) if adapt else None
+    t_exc0 = float(dur[:3].sum())
+    applied = np.zeros(3)  # the adapter's torque in the frame the motors hold
     for k in range(n_total):
         t_lift = (k - n_settle) * timestep  # s since the lift command (< 0: settling)
         if t_lift >= 0:
@@ -211,14 +225,20 @@ def run_policy_a2i(
                 sched_q, sched_dq, sched_phase = blend_targets(
                     tt, dur, q_start[None], plan.q0[None], plan.positions(te),
                     plan.velocities(te))
+                sched_ddq = np.nan_to_num(blend_accelerations(
+                    tt, dur, q_start[None], plan.q0[None], plan.accelerations(te)))
                 if sched.feedforward:
-                    ddq = blend_accelerations(tt, dur, q_start[None], plan.q0[None],
-                                              plan.accelerations(te))
-                    sched_tau = sched.feedforward_table(leg, sched_q, sched_dq,
-                                                        np.nan_to_num(ddq))
+                    sched_tau = sched.feedforward_table(leg, sched_q, sched_dq, sched_ddq)
             if sched_phase is not None:
                 phase = int(sched_phase[k - k_latch])
         if k % n_ctrl == 0:
+            if adapter is not None and phase == _EXCITE:
+                # a tick's measurement against the plan at this instant, as on board
+                i = k - k_latch
+                g = projected_gravity(sim.base_quat_wxyz)
+                model = sched_tau.at(i, g) if sched_tau is not None else zeros3
+                adapter.observe(t_lift - t_exc0, sched_q[i], sched_dq[i], sched_ddq[i],
+                                sim.q[idx_m], sim.dq[idx_m], model, applied)
             if phase == _DONE and lift_on:
                 # hand-back: the leg's policy target restarts from where the leg is
                 runner.target[idx_s] = model_to_sdk(sim.q)[idx_s]
@@ -249,9 +269,15 @@ def run_policy_a2i(
             dq_cmd[idx_m] = sched_dq[j]
             kp_c[idx_m] = sched.kp
             kd_c[idx_m] = sched.kd
+            model = zeros3
             if sched_tau is not None:
+                model = sched_tau.at(j, projected_gravity(sim.base_quat_wxyz))
+            if adapter is not None and phase >= _EXCITE:
+                applied = adapter.torque((k_latch + j - n_settle) * timestep - t_exc0,
+                                         sched_dq[j], sched_ddq[j], model)[0]
+            if sched_tau is not None or adapter is not None:
                 tau_c = np.zeros(12)
-                tau_c[idx_m] = sched_tau.at(j, projected_gravity(sim.base_quat_wxyz))
+                tau_c[idx_m] = np.clip(model + applied, -EFFORT_LIMIT, EFFORT_LIMIT)
         elif phase == _DONE:
             kp_c[idx_m], kd_c[idx_m] = kp_m[idx_m], kd_m[idx_m]
             tau_c = 0.0

@@ -296,6 +296,41 @@ def test_joystick_mode(meta_paths):
     assert rig.s.state is State.DAMP  # final now
 
 
+def test_adapt_schedule_adds_what_the_legs_lag_shows_from_its_fit_on(tmp_path):
+    """With the schedule's ``adapt``: the lifted leg's frames carry the tracking adapter's
+    torque from its first fit on (2 s into the excitation), faded in; none before, and none on
+    the other joints; a new lift starts a new adapter. The rig's leg reaches each target a
+    tick late, a lag the adapter reads as damping."""
+    from deploy.hold_policy import write_hold_policy
+
+    sched = LiftSchedule(shift=0.2, lift=0.2, hold=0.2, lower=0.2, periods=1, adapt=True)
+    rig = Rig(write_hold_policy(tmp_path, "ad", schedule=sched), legs=("RL", "FL"))
+    idx = sdk_indices("RL")
+    rig.run_until(State.CALIBRATE)
+    first = rig.s._adapter
+    assert first is not None and not first.fitted[0]
+    t0 = sched.durations("RL")[:3].sum()
+    seen = []
+    while rig.s.state is State.CALIBRATE:
+        t = (rig.s.k - rig.s._k_lift) * 0.02 - t0  # s into the excitation at this tick
+        cmd = rig.tick()
+        assert not np.delete(cmd.tau, idx).any()
+        frames = (cmd, *cmd.substeps)
+        if t < 2.0:
+            assert not any(f.tau.any() for f in frames)
+        elif t > 2.6:
+            lt = sched.targets("RL", t + t0, rig.s._q_start)
+            want = first.torque(t, lt.dq_des, lt.ddq_des, np.zeros(3))[0]
+            np.testing.assert_allclose(cmd.tau[idx], want, atol=1e-9)
+            seen.append(np.abs(want).max())
+    assert first.fitted[0] and max(seen) > 0.1
+    damping = first.coef[0, :, 0]
+    assert np.all((damping > 0.5) & (damping < 5.0)), damping  # kp 40 x 20 ms + kd 1: ~1.8
+    rig.run_until(State.CALIBRATE)  # FL's lift
+    assert rig.s.leg == "FL"
+    assert rig.s._adapter is not first and not rig.s._adapter.fitted[0]
+
+
 def test_feedforward_schedule_sends_the_lifted_leg_torque(tmp_path):
     from deploy.hold_policy import write_hold_policy
 

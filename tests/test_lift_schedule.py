@@ -37,11 +37,14 @@ def test_targets_continuous_and_consistent(sched):
     np.testing.assert_allclose(at(ends[2] + eps).q_des, plan.q0, atol=1e-5)
     np.testing.assert_allclose(at(ends[3] - eps).q_des, plan.q0, atol=1e-5)
     np.testing.assert_allclose(at(ends[4] - eps).q_des, Q_START, atol=1e-6)
-    # dq_des is the derivative of q_des in every phase with targets
+    # dq_des is the derivative of q_des, ddq_des that of dq_des, in every phase with targets
     for t in np.linspace(ends[0] + 0.01, ends[4] - 0.01, 37):
         h = 1e-5
         fd = (at(t + h).q_des - at(t - h).q_des) / (2 * h)
         np.testing.assert_allclose(at(t).dq_des, fd, atol=2e-3)
+        fdd = (at(t + h).dq_des - at(t - h).dq_des) / (2 * h)
+        np.testing.assert_allclose(at(t).ddq_des, fdd, atol=2e-2)
+    assert at(ends[0] / 2).ddq_des is None  # shift: the policy's
     tg = at(ends[2] + 1.0)
     assert tg.phase == "excite" and tg.kp == sched.kp and tg.kd == sched.kd
 
@@ -51,6 +54,10 @@ def test_metadata_round_trip_and_errors(sched):
     assert LiftSchedule.from_metadata(d) == sched
     with pytest.raises(ValueError, match="unknown lift_schedule keys"):
         LiftSchedule.from_metadata({**d, "bogus": 1})
+    assert LiftSchedule.from_metadata({**d, "adapt": True}).adapt
+    for key in ("feedforward", "adapt"):
+        with pytest.raises(ValueError, match=f"{key} must be true or false"):
+            LiftSchedule.from_metadata({**d, key: "yes"})
     with pytest.raises(ValueError):
         LiftSchedule(shift=0.0)
     for kp, kd in ((0.0, 1.0), (40.0, -1.0), (float("inf"), 1.0), (40.0, float("nan"))):

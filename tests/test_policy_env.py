@@ -161,6 +161,29 @@ def test_feedforward_torque_cuts_the_lifted_legs_lag():
     assert ff < 0.5 * plain, (ff, plain)
 
 
+def test_tracking_adapter_cuts_the_lag_of_joint_friction_the_model_lacks():
+    """``lift_adapt`` (the evaluation plays the JSON's ``adapt``): on joints with 0.5 N m of
+    dry friction, once fitted (2 s into the excitation, faded in by 2.5 s) the lifted leg tracks
+    its plan closer; the adapter's torque is off outside the excitation's envs."""
+    def tracking_rms(adapt):
+        e = TripodEnv(EnvConfig(num_envs=4, plans_per_leg=1, seed=5, threads=1,
+                                p_reference_start=1.0, p_reference_shift=0.0, lift_adapt=adapt))
+        e._joint_fric[:, 6:] = 0.5
+        err = []
+        for _ in range(300):
+            e.step(np.zeros((4, 12)))
+            te = e.lift_t - e.lift_dur[:, :3].sum(1)
+            fitted = (e.phase == 3) & (te > 2.6)
+            err.append(e.lift_err[fitted])
+            if adapt:
+                assert not e.lift_applied[(e.phase < 3) | (e.phase > 4)].any()
+        assert len(np.concatenate(err)) > 50 and not e.other_touch.any()
+        return np.sqrt(np.mean(np.square(np.concatenate(err))))
+
+    plain, adapted = tracking_rms(False), tracking_rms(True)
+    assert adapted < 0.6 * plain, (adapted, plain)
+
+
 def test_reference_start_is_a_level_tripod_in_hold():
     e = TripodEnv(EnvConfig(num_envs=8, plans_per_leg=1, seed=5, threads=1,
                             p_reference_start=1.0, p_reference_shift=0.0))

@@ -503,6 +503,30 @@ def test_derive_sets_a_shift_per_leg(exported, tmp_path, capsys):
     assert not (tmp_path / "k.json").exists()
 
 
+def test_derive_turns_the_tracking_adapter_on_and_off(exported, tmp_path):
+    """`derive --adapt` (v26): the JSON's lift schedule runs the lifted leg's tracking adapter,
+    the evaluation plays it and its page says so, ``derived_from`` records that the source had
+    none; `--no-adapt` of the result turns it off again, the network byte for byte."""
+    from policy_train.cli import main
+    from policy_train.evaluate import _derived, evaluation_env
+
+    d, _ = exported
+    src = json.loads((d / "pol.json").read_text())
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"), "--adapt"]) == 0
+    meta = json.loads((tmp_path / "g.json").read_text())
+    assert meta["lift_schedule"] == {**src["lift_schedule"], "adapt": True}
+    assert meta["derived_from"]["adapt"] is False
+    assert _derived(meta).endswith("`pol.onnx`: the lifted leg's tracking adapter on")
+    env, _ = evaluation_env(meta, ("FL",), 1, seed=1, nominal=True)
+    assert env.adapter is not None
+    assert main(["derive", str(tmp_path / "g.onnx"), "--out", str(tmp_path / "h"),
+                 "--no-adapt"]) == 0
+    off = json.loads((tmp_path / "h.json").read_text())
+    assert off["lift_schedule"]["adapt"] is False and off["derived_from"]["adapt"] is True
+    assert (tmp_path / "h.onnx").read_bytes() == (d / "pol.onnx").read_bytes()
+    assert evaluation_env(off, ("FL",), 1, seed=1, nominal=True)[0].adapter is None
+
+
 @pytest.mark.parametrize(("extra", "hint"), [
     ([], "--gains"), (["--shift", "0"], "--shift"), (["--gains", "0,0.5"], "--gains"), (["--gains", "20"], "--gains"),
     (["--gains", "nan,1"], "--gains"), (["--gains", "29,0.7/23,0.5"], "--gains"),
