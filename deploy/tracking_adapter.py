@@ -11,7 +11,8 @@ known before the leg moves.
 
 Per joint, the torque the PD law had to supply beyond the feed-forward it was given,
 ``u = kp (q_des - q) + kd (dq_des - dq) + c_applied``, is regressed on four features of the
-plan, by ridge least squares over every sample of the excitation so far::
+plan, by ridge least squares over the excitation so far, older samples fading (they were taken
+while the leg lagged more, further from the plan whose features they are regressed on)::
 
     u ~ b dq_des  +  f tanh(dq_des / V_SIGN)  +  i ddq_des  +  a tau_model
 
@@ -48,7 +49,8 @@ V_SIGN = 0.1
 class AdapterConfig:
     """start_s: s into the excitation before the first fit (a period of the plan at t_r 0.5 s
     is 4 s; 2 s already span its velocities). refit_s: s between fits. fade_s: s over which
-    the first fit's torque is faded in. ridge: regularisation, a fraction of each feature's sum
+    the first fit's torque is faded in. memory_s: time constant, s, over which a sample's weight
+    in the fit falls by e. ridge: regularisation, a fraction of each feature's sum
     of squares. bounds: the largest |coefficient| kept, per :data:`FEATURES` (a damping of
     5 N m s/rad is 2.5 times Menagerie's, a friction of 1.5 N m 7 times, an inertia of
     0.05 kg m^2 5 times the rotor's; a torque constant off by up to a half either way)."""

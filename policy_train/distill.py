@@ -231,6 +231,7 @@ class Distiller:
         sched = self.meta["lift_schedule"]
         e.lift_kp, e.lift_kd = float(sched["kp"]), float(sched["kd"])
         e.lift_feedforward = bool(sched.get("feedforward", False))  # as deploy plays it
+        e.lift_adapt = bool(sched.get("adapt", False))
         self.train_config = tc
         # the teacher's plans: a policy learns its pool (warm_start.policy_plan_pool)
         pool = PlanPool(e.plans_per_leg, e.t_r_range, e.n_basis, e.train_periods, e.physics_dt,

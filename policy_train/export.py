@@ -257,8 +257,8 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     :mod:`deploy.tracking_adapter`: the network never sees the lifted leg's motors, so any
     policy may have it).
     The JSON's ``derived_from`` names the source, its commit, the gains, t_r, shift (and
-    ``shift_by_leg``) and adapt it had; its evaluation figures are dropped (they were measured with the
-    source's gains).
+    ``shift_by_leg``) and adapt it had; its evaluation figures are dropped (they were measured
+    with the source's settings).
     ValueError on a source that is not an exported policy or on gains deploy refuses."""
     from deploy.policy import PolicyMeta
 
