@@ -30,15 +30,15 @@ Joint triples are (hip, thigh, calf) in the leg's own URDF signs, rad.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from calib.excitation import ExcitationConfig, ExcitationPlan, plan_excitation
 from calib.joints import EFFORT_LIMIT, check_leg
 
-__all__ = ["COMMANDS_PER_TICK", "PHASES", "LegTarget", "LiftSchedule", "blend_accelerations",
-           "blend_targets"]
+__all__ = ["COMMANDS_PER_TICK", "PHASES", "LegTarget", "LiftSchedule", "abort_targets",
+           "blend_accelerations", "blend_targets"]
 
 COMMANDS_PER_TICK = 5
 """LowCmd_ frames per 50 Hz policy tick (250 Hz, 4 ms apart), each with the lifted leg's
@@ -58,6 +58,17 @@ def _smooth_dd(x: np.ndarray) -> np.ndarray:
     """Second derivative in x of the quintic smoothstep (zero outside [0, 1])."""
     inside = (x >= 0.0) & (x <= 1.0)
     return np.where(inside, 60 * x * (1 - x) * (1 - 2 * x), 0.0)
+
+
+def abort_targets(t, duration: float, q_from, q_to) -> tuple[np.ndarray, np.ndarray]:
+    """An aborted lift's way back: quintic from ``q_from`` (the leg's last target) to ``q_to``
+    (where it stood) over ``duration`` s (:attr:`LiftSchedule.abort_lower`). t: (N,) s since
+    the abort. Returns q_des, dq_des (N, 3) rad, rad/s; q_to and zero from ``duration`` on."""
+    t = np.asarray(t, dtype=float)
+    q_from, q_to = np.asarray(q_from, dtype=float), np.asarray(q_to, dtype=float)
+    w, dw = _smooth(t / duration)
+    return (q_from + w[..., None] * (q_to - q_from),
+            (dw / duration)[..., None] * (q_to - q_from))
 
 
 def blend_targets(t, durations, q_start, q_lift, q_exc, dq_exc):
@@ -230,6 +241,20 @@ class LiftSchedule:
         """(5,) s: shift, lift, hold, excite, lower."""
         return np.array([self.shift_of(leg), self.lift, self.hold,
                          self.excitation_config(leg).duration, self.lower])
+
+    def with_shift(self, leg: str, shift: float) -> LiftSchedule:
+        """This schedule with ``leg``'s shift ``shift`` s (a tipped lift's retry); the
+        excitation plans, which the shift leaves alone, are shared, not optimised again."""
+        leg = check_leg(leg)
+        out = replace(self, shift_by_leg={**(self.shift_by_leg or {}), leg: float(shift)})
+        out._plans = self._plans
+        return out
+
+    @property
+    def abort_lower(self) -> float:
+        """s to bring an aborted lift's leg back to where it stood: half again the lower
+        phase, since the leg may be anywhere in its plan."""
+        return 1.5 * self.lower
 
     def total(self, leg: str) -> float:
         """Time from the command to the start of ``done``, s."""

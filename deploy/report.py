@@ -11,12 +11,17 @@ from deploy.session import LegOutcome
 __all__ = ["leg_summary", "results_table"]
 
 
+def _retried(o: LegOutcome) -> str:
+    return (f"\n  (its first lift was called off: {o.retried}; lifted again with a longer shift)"
+            if o.retried else "")
+
+
 def leg_summary(o: LegOutcome) -> str:
     """The report of one leg, as printed when its SOLVE ends."""
     out = o.payload
     if out is None or getattr(out, "result", None) is None:
-        return f"Leg {o.leg}: NO CALIBRATION WRITTEN: {o.error or 'no result'}"
-    text = format_report(out.result, out.truth)
+        return f"Leg {o.leg}: NO CALIBRATION WRITTEN: {o.error or 'no result'}" + _retried(o)
+    text = format_report(out.result, out.truth) + _retried(o)
     if out.accepted:
         files = ", ".join(str(p) for p in out.files)
         return f"{text}\n  written: {files}"

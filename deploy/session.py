@@ -12,6 +12,9 @@ States and their exits (every transition is reported with its cause)::
               leg's lift command; the leg's motors follow the lift
               schedule (shift, lift, hold). -> CALIBRATE when the excitation begins.
               The lifted leg must track its targets by the end of hold, else abort -> LOWER.
+              With ``max_tip_deg``, a lift or hold that tips the body that far from its tilt
+              when the lift began aborts -> LOWER (``deploy.tip_guard``); the leg is then
+              lifted once more, after REPLANT, with its shift ``tip_retry_shift_s`` longer.
     CALIBRATE the excitation plan on the lifted leg; its span is the recording window of SOLVE.
               -> LOWER when it ends; a failed foot IMU aborts -> LOWER (no result).
     LOWER     the schedule's lower phase, then ``lower_settle_s`` of the policy alone (none by
@@ -45,6 +48,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
+import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -52,9 +56,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib.joints import EFFORT_LIMIT, LIE_POSE_LEG, check_leg, full_pose, sdk_indices
-from deploy.lift_schedule import COMMANDS_PER_TICK
+from deploy.lift_schedule import COMMANDS_PER_TICK, LegTarget, abort_targets
 from deploy.observation import build_observation, projected_gravity
 from deploy.supervisor import DAMP_KD, SafetySupervisor
+from deploy.tip_guard import RETRY_SHIFT_S, TipGuard
 from deploy.tracking_adapter import TrackingAdapter
 
 __all__ = ["Command", "Session", "SessionConfig", "State", "TickInput"]
@@ -107,6 +112,13 @@ class SessionConfig:
     # on a floor tilted 4 deg (front or left side down) tipped over lifting FL, third, from
     # where RL and RR had left the feet, while FL lifted first held
     replant: bool = True
+    # a lift (lift, hold) that tips the body this many deg from its tilt when the lift began is
+    # called off, the foot put back down (deploy.tip_guard, which says why it is off by
+    # default; a2i-deploy --max-tip 5); None: never
+    max_tip_deg: float | None = None
+    # a lift the tip guard called off is tried once more, after REPLANT, with its shift this
+    # much longer (s); None: not tried again
+    tip_retry_shift_s: float | None = RETRY_SHIFT_S
     damp_kd: float = DAMP_KD
     # LowCmd_ frames per tick. The motors hold each frame's target, so a lifted leg whose
     # target moved once per 20 ms tick lagged its plan in a 20 ms staircase: at its kp 80 that
@@ -115,6 +127,9 @@ class SessionConfig:
     commands_per_tick: int = COMMANDS_PER_TICK
 
     def __post_init__(self) -> None:
+        r = self.tip_retry_shift_s
+        if r is not None and not (isinstance(r, (int, float)) and math.isfinite(r) and r > 0):
+            raise ValueError(f"tip_retry_shift_s must be a positive number of s or None, got {r!r}")
         n = self.commands_per_tick
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise ValueError(f"commands_per_tick must be an integer >= 1, got {n!r}")
@@ -165,6 +180,7 @@ class LegOutcome:
     ok: bool = False
     error: str | None = None
     payload: object = None  # the solve job's result object (deploy.solve.SolveOutcome)
+    retried: str | None = None  # why the first lift was called off, if it was tried again
 
 
 class Session:
@@ -227,6 +243,9 @@ class Session:
         self._stance_used = False  # a leg was lifted since the last stand-up
         self._adapter: TrackingAdapter | None = None  # the lifted leg's, where the schedule's adapt
         self._adapted = np.zeros(3)
+        self._tip = TipGuard(self.cfg.max_tip_deg)
+        self._tipped = False  # this lift was called off by the tip guard
+        self._retry: LegOutcome | None = None  # a tipped lift's outcome, to be tried again
         self.lie_pose = full_pose(LIE_POSE_LEG, order="sdk")
         self.phase = ""
         self.last_command: Command | None = None
@@ -359,7 +378,8 @@ class Session:
         if self._pending_solve is not None:
             self._start_solve()
             return cmd
-        if self._current is not None:  # an aborted leg: report it, nothing to solve
+        if self._current is not None and not self._queue_retry():
+            # an aborted leg: report it, nothing to solve
             self._go(State.REPORT, f"calibration of {self._current.leg} aborted")
             return cmd
         leg = None
@@ -381,6 +401,22 @@ class Session:
             self._start_tripod(leg, inp, cause)
         return cmd
 
+    def _queue_retry(self) -> bool:
+        """Queue the current lift again (True) if the tip guard called it off and it was not
+        a retry already (``SessionConfig.tip_retry_shift_s``)."""
+        o = self._current
+        if not self._tipped or self.cfg.tip_retry_shift_s is None or o.retried is not None:
+            return False
+        o.retried, o.error = o.error, None
+        self._retry, self._current = o, None
+        if self.joystick:
+            self._requested = o.leg
+        else:
+            self.queue.appendleft(o.leg)
+        log.warning("%s: lift called off (%s); trying again with %.1f s more shift",
+                    o.leg, o.retried, self.cfg.tip_retry_shift_s)
+        return True
+
     def _maybe_replant(self, leg: str) -> bool:
         """Go to REPLANT (True) if ``leg``'s lift would start from a stance a lift left."""
         if not (self.cfg.replant and self._stance_used):
@@ -401,18 +437,28 @@ class Session:
 
     def _start_tripod(self, leg: str, inp: TickInput, cause: str) -> None:
         self.leg = leg
-        self._current = LegOutcome(leg)
-        self.outcomes.append(self._current)
-        self._q_start = None
-        self._abort = None
-        self._window_start = self._window_end = None
         if self.policies is not None:
             self.policy = self.policies[leg]
-            self.meta = self.policy.meta
+        self.meta = self.policy.meta
+        if self._retry is not None and self._retry.leg == leg:  # a tipped lift, again
+            self._current, self._retry = self._retry, None
+            sched = self.meta.schedule
+            shift = sched.shift_of(leg) + self.cfg.tip_retry_shift_s
+            self.meta = dataclasses.replace(self.meta, schedule=sched.with_shift(leg, shift))
+            cause += f", again with a {shift:g} s shift"
+        else:
+            self._retry = None
+            self._current = LegOutcome(leg)
+            self.outcomes.append(self._current)
+        self._q_start = None
+        self._abort = None
+        self._tipped = False
+        self._window_start = self._window_end = None
         self.policy.reset(inp.q)
         sched = self.meta.schedule
         self._adapter = TrackingAdapter(sched.kp, sched.kd) if sched.adapt else None
         self._adapted = np.zeros(3)  # the adapter's torque in the frame the motors hold
+        self._tip.reset()
         self._stance_used = True
         self.phase = ""
         self._k_lift = self.k + 1  # the lift command is given at TRIPOD's first tick
@@ -553,6 +599,11 @@ class Session:
         cmd = self._policy_command(inp, self.leg, self._schedule_targets(self.leg, t, inp))
         if self.state is State.DAMP:
             return cmd
+        tipped = self._tip.check(self.phase, inp.quat)
+        if tipped is not None:
+            self._tipped = True
+            self._abort_leg(tipped)  # the foot goes down from the next tick (_lower_now)
+            return cmd
         if self.phase == "excite":
             idx = sdk_indices(self.leg)
             err = float(np.max(np.abs(np.asarray(inp.q)[idx] - sched.plan(self.leg).q0)))
@@ -601,27 +652,19 @@ class Session:
 
     def _abort_target(self, s: float = 0.0):
         """The aborted leg's way back, ``s`` seconds after this tick."""
-        from deploy.lift_schedule import LegTarget
-
         sched = self.meta.schedule
-        if self._abort_to is None:
+        t = self.t_state + s
+        if self._abort_to is None or t >= sched.abort_lower:
             return LegTarget("done", None, None, sched.kp, sched.kd)
-        dur = 1.5 * sched.lower
-        x = min(1.0, (self.t_state + s) / dur)
-        w = x**3 * (10 - 15 * x + 6 * x**2)
-        dw = 30 * x**2 * (1 - x) ** 2 / dur
-        q = self._abort_from + w * (self._abort_to - self._abort_from)
-        dq = dw * (self._abort_to - self._abort_from)
-        return LegTarget("lower" if x < 1 else "done", q, dq if x < 1 else None, sched.kp,
-                         sched.kd) if x < 1 else LegTarget("done", None, None, sched.kp,
-                                                           sched.kd)
+        q, dq = abort_targets([t], sched.abort_lower, self._abort_from, self._abort_to)
+        return LegTarget("lower", q[0], dq[0], sched.kp, sched.kd)
 
     def _lower(self, inp: TickInput, combos) -> Command:
         sched = self.meta.schedule
         if self._abort:
             cmd = self._policy_command(inp, self.leg,
                                        [self._abort_target(s) for s in self._frame_offsets()])
-            end = 1.5 * sched.lower if self._abort_to is not None else 0.0
+            end = sched.abort_lower if self._abort_to is not None else 0.0
             done = self.t_state >= end + self.cfg.lower_settle_s
         else:
             t = self._lift_time()

@@ -263,13 +263,14 @@ def _transfer(a) -> int:
         page = load_results(Path(a.out).with_suffix(".json"))
         run_legs = a.legs or json.loads(Path(a.onnx).with_suffix(".json").read_text()).get(
             "legs", list(LEGS))
-        merge_results(page, [], a.onnx, a.seed, run_legs, a.episodes, model)
+        merge_results(page, [], a.onnx, a.seed, run_legs, a.episodes, model, a.max_tip)
     n = a.episodes * len(a.scenarios) * len(a.legs or (1, 1, 1, 1))
     on = "" if model is None else f" on {a.model_xml}"
     print(f"transfer: {a.onnx}{on}, scenarios {', '.join(a.scenarios)}, about {n} episodes",
           flush=True)
     res, elapsed = timed_run(a.onnx, a.scenarios, a.legs, a.episodes, a.seed, a.workers,
-                             log=lambda s: print(s, flush=True), model_xml=a.model_xml)
+                             log=lambda s: print(s, flush=True), model_xml=a.model_xml,
+                             max_tip_deg=a.max_tip)
     for s, x in summarise(res).items():
         legs = " ".join(f"{g} {100 * v:.0f} %" for g, v in x["legs"].items())
         print(f"{s:15s} success {100 * x['success']:5.1f} % ({legs}); rate "
@@ -277,9 +278,10 @@ def _transfer(a) -> int:
               f"{x['cn_p90']:.3f}")
     if not a.no_write:
         if page is not None:
-            res = merge_results(page, res, a.onnx, a.seed, run_legs, a.episodes, model)
+            res = merge_results(page, res, a.onnx, a.seed, run_legs, a.episodes, model,
+                                a.max_tip)
             elapsed += page[0]["elapsed_s"] or 0.0
-        write_results(res, a.out, a.onnx, a.seed, elapsed, model)
+        write_results(res, a.out, a.onnx, a.seed, elapsed, model, a.max_tip)
         print(f"wrote {a.out} and {Path(a.out).with_suffix('.json')}")
     return 0
 
@@ -752,6 +754,10 @@ def main(argv: list[str] | None = None) -> int:
     x.add_argument("--model-xml", default=None, metavar="MJCF",
                    help="run on another MJCF model of the Go2 instead of the URDF's (e.g. MuJoCo "
                         "Menagerie's unitree_go2/scene.xml; see sim/external_model.py)")
+    x.add_argument("--max-tip", type=_number(1e-3, 90.0, "must be in [0.001, 90) deg"),
+                   default=None, metavar="DEG",
+                   help="play deploy's tip guard with this limit, as a2i-deploy --max-tip "
+                        "(default: off, the policy alone)")
     c = sub.add_parser("compare", help="two transfer runs of the same seed, paired episode by "
                                        "episode (which policy holds more of the same draws)")
     c.add_argument("episodes_files", nargs=2, metavar="EPISODES_JSON",

@@ -44,9 +44,16 @@ from calib.joints import (
     sdk_indices,
     sdk_to_model,
 )
-from deploy.lift_schedule import COMMANDS_PER_TICK, PHASES, blend_accelerations, blend_targets
+from deploy.lift_schedule import (
+    COMMANDS_PER_TICK,
+    PHASES,
+    abort_targets,
+    blend_accelerations,
+    blend_targets,
+)
 from deploy.observation import build_observation, projected_gravity
 from deploy.policy import PolicyMeta, PolicyRunner
+from deploy.tip_guard import TipGuard
 from deploy.tracking_adapter import TrackingAdapter
 from policy_train.config import OBS_NOISE
 from sim.calibration_run import MotionRun
@@ -64,6 +71,8 @@ __all__ = ["Disturbance", "load_policy", "run_policy_a2i", "run_policy_a2i_per_l
 
 _EXCITE = PHASES.index("excite")
 _DONE = PHASES.index("done")
+_LOWER = PHASES.index("lower")
+_WATCH_AFTER_ABORT_S = 1.0  # s simulated once an aborted leg is down (watched for a fall)
 
 
 @dataclass(frozen=True)
@@ -136,7 +145,9 @@ def run_policy_a2i(
     commands_per_tick: int = COMMANDS_PER_TICK,
     model_xml: str | None = None,
     adapt: bool | None = None,
-) -> tuple[MotionRun, RunHealth]:
+    max_tip_deg: float | None = None,
+    extra_shift_s: float = 0.0,
+) -> tuple[MotionRun | None, RunHealth]:
     """The A2I calibration of ``leg`` by the tripod policy on the free-base simulated Go2.
 
     policy: a :class:`deploy.policy.PolicyRunner` or the ``.onnx`` path (its ``.json`` beside
@@ -151,11 +162,18 @@ def run_policy_a2i(
     each carrying the lifted leg's schedule at its time (deploy's
     :data:`deploy.lift_schedule.COMMANDS_PER_TICK`; must divide the tick's physics steps).
     model_xml: another MJCF model of the Go2 to run on (:mod:`sim.external_model`; None: the
-    URDF's).
+    URDF's). adapt: the tracking adapter on or off (None: the JSON's). max_tip_deg: deploy's
+    tip guard (:mod:`deploy.tip_guard`; None: off, as deploy's default): a lift or hold that
+    tips the body this far
+    is called off as the session does, the leg brought back down over the schedule's
+    ``abort_lower`` from the next tick, with the policy balancing. extra_shift_s: s added to
+    the leg's shift (the second try of a lift the guard called off, as deploy makes it).
 
     Returns the :class:`MotionRun` of the excitation phase (sim-time stamps; motion name
     ``a2i_<leg>``) and the :class:`RunHealth` of hold + excitation (``fell`` covers the whole
-    run). progress(fraction): optional, about 20 calls.
+    run). A lift the tip guard called off returns None for the run and a health with its
+    ``aborted`` cause, watched up to the abort (``fell``: until 1 s after the foot is down).
+    progress(fraction): optional, about 20 calls.
     """
     leg = check_leg(leg)
     if record_every < 1:
@@ -166,6 +184,8 @@ def run_policy_a2i(
     pb = runner.meta
     sched = pb.schedule if periods is None else dataclasses.replace(pb.schedule,
                                                                     periods=int(periods))
+    if extra_shift_s:
+        sched = sched.with_shift(leg, sched.shift_of(leg) + float(extra_shift_s))
     n_ctrl = round(pb.control_dt / timestep)
     if n_ctrl < 1 or abs(n_ctrl * timestep - pb.control_dt) > 1e-9:
         raise ValueError(f"control_dt {pb.control_dt} s is not a multiple of the "
@@ -212,7 +232,13 @@ def run_policy_a2i(
     adapter = TrackingAdapter(sched.kp, sched.kd) if adapt else None
     t_exc0 = float(dur[:3].sum())
     applied = np.zeros(3)  # the adapter's torque in the frame the motors hold
+    guard = TipGuard(max_tip_deg)
+    aborted = None
+    abort_pending = False
+    k_stop = n_total
     for k in range(n_total):
+        if k >= k_stop:
+            break
         t_lift = (k - n_settle) * timestep  # s since the lift command (< 0: settling)
         if t_lift >= 0:
             phase = int((t_lift >= ends - 1e-9).sum())
@@ -231,6 +257,20 @@ def run_policy_a2i(
                     sched_tau = sched.feedforward_table(leg, sched_q, sched_dq, sched_ddq)
             if sched_phase is not None:
                 phase = int(sched_phase[k - k_latch])
+        if k % n_ctrl == 0 and abort_pending:
+            # the session's abort: from the last target back to where the leg stood
+            abort_pending = False
+            i = k - k_latch
+            n_low = round(sched.abort_lower / timestep)
+            m = min(n_low, len(sched_q) - i)
+            sched_q[i:i + m], sched_dq[i:i + m] = abort_targets(
+                np.arange(m) * timestep, sched.abort_lower, q_cmd[idx_m], q_start)
+            sched_phase[i:i + m] = _LOWER
+            sched_phase[i + m:] = _DONE
+            sched_tau = adapter = None
+            tau_c = 0.0
+            phase = _LOWER
+            k_stop = min(n_total, k + n_low + round(_WATCH_AFTER_ABORT_S / timestep))
         if k % n_ctrl == 0:
             if adapter is not None and phase == _EXCITE:
                 # a tick's measurement against the plan at this instant, as on board
@@ -259,6 +299,11 @@ def run_policy_a2i(
             q_cmd = sdk_to_model(runner.step(runner.act(obs)))
             dq_cmd = np.zeros(12)
             kp_c, kd_c = kp_m.copy(), kd_m.copy()
+            if aborted is None and 0 <= phase < _DONE:
+                aborted = guard.check(PHASES[phase], sim.base_quat_wxyz)
+                if aborted is not None:
+                    abort_pending = True
+                    health.update(sim)  # the state it was called off in
         if sched_phase is not None and 1 <= phase <= 4:
             # the schedule at the time of this step's frame, held until the next frame (a latch
             # mid-frame starts the lift's first frame at the latch)
@@ -290,9 +335,9 @@ def run_policy_a2i(
         # the phase of the state reached after this step
         t_next = t_lift + timestep
         ph_next = int((t_next >= ends - 1e-9).sum()) if t_next >= 0 else -1
-        if ph_next in (2, 3):
+        if ph_next in (2, 3) and aborted is None:
             health.update(sim)
-        if ph_next == _EXCITE and (k + 1 - n_settle) % record_every == 0:
+        if ph_next == _EXCITE and aborted is None and (k + 1 - n_settle) % record_every == 0:
             rec.record(sim, q_cmd)
         if (k + 1) % 10 == 0:
             fell |= sim.base_tilt > FALL_TILT or sim.base_pos[2] < FALL_HEIGHT
@@ -301,7 +346,9 @@ def run_policy_a2i(
     if progress is not None:
         progress(1.0)
     h = health.result()
-    h = dataclasses.replace(h, fell=h.fell or bool(fell))
+    h = dataclasses.replace(h, fell=h.fell or bool(fell), aborted=aborted)
+    if aborted is not None:
+        return None, h
     return rec.finish(f"a2i_{leg}", encoder, body_imu), h
 
 

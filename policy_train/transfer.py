@@ -27,7 +27,11 @@ record the model (path and the compiled model's hash) and do not take episodes o
 
 An episode succeeds as the evaluation's do: no fall over the whole run, and over the hold and
 the excitation no body but a foot on the floor and the lifted foot never down
-(:class:`sim.free_base_run.RunHealth`). Figures over the excitation, of the successful episodes:
+(:class:`sim.free_base_run.RunHealth`). With ``max_tip_deg`` (``--max-tip``) deploy's tip
+guard (:mod:`deploy.tip_guard`) plays as on board: a lift it calls off is lifted again with a
+longer shift, here from a stand-up on the same draws, and the episode is that second lift's
+(``EpisodeResult.retried``); a second lift called off fails, "lift called off (tipping)", with
+a fall if the robot fell all the same. Figures over the excitation, of the successful episodes:
 base tilt RMS (deg), base angular rate RMS (rad/s, true), the lifted leg's joint tracking RMSE
 (rad, executed vs commanded) and the CN of its true foot angular velocity over the steady
 periods (the evaluation's definitions).
@@ -181,7 +185,8 @@ class EpisodeResult:
     """One transfer episode. Figures over the excitation (NaN if it failed): tilt_rms_deg,
     rate_rms (rad/s), track_rmse (rad), cn. causes: what failed (empty on success).
     calf_reach_mm: for each leg whose calf touched the floor, the farthest such contact from its
-    foot centre, mm (:class:`sim.free_base_run.RunHealth`)."""
+    foot centre, mm (:class:`sim.free_base_run.RunHealth`). retried: why the tip guard called
+    the first lift off, when the episode's figures and outcome are its second lift's."""
 
     scenario: str
     leg: str
@@ -193,6 +198,7 @@ class EpisodeResult:
     track_rmse: float = float("nan")
     cn: float = float("nan")
     calf_reach_mm: dict[str, float] = field(default_factory=dict)
+    retried: str | None = None
 
 
 TOP_CAUSES = 6
@@ -206,23 +212,38 @@ def _episode_seed(seed: int, scenario: str, leg: str, episode: int) -> np.random
 
 
 def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed: int = 1,
-                periods: int | None = None, model_xml: str | None = None) -> EpisodeResult:
+                periods: int | None = None, model_xml: str | None = None,
+                max_tip_deg: float | None = None) -> EpisodeResult:
     """One calibration of ``leg`` by the policy under ``scenario`` (its draws from ``seed``,
     the scenario, the leg and ``episode``). periods: None for the JSON's. model_xml: another
-    MJCF model of the Go2 (:mod:`sim.external_model`; None: the URDF's)."""
+    MJCF model of the Go2 (:mod:`sim.external_model`; None: the URDF's). max_tip_deg: deploy's
+    tip guard with this limit (:mod:`deploy.tip_guard`; None: off, the policy alone)."""
+    from deploy.tip_guard import RETRY_SHIFT_S
     from policy_train.policy_motion import run_policy_a2i
 
-    effects, dist = scenario.draw(_episode_seed(seed, scenario.name, leg, episode))
-    run, h = run_policy_a2i(onnx_path, leg, periods=periods, effects=effects, disturbance=dist,
-                            model_xml=model_xml)
+    def attempt(extra_shift_s=0.0):
+        effects, dist = scenario.draw(_episode_seed(seed, scenario.name, leg, episode))
+        return run_policy_a2i(onnx_path, leg, periods=periods, effects=effects,
+                              disturbance=dist, model_xml=model_xml,
+                              max_tip_deg=max_tip_deg, extra_shift_s=extra_shift_s)
+
+    run, h = attempt()
+    retried = None
+    if h.aborted is not None and not h.fell:
+        # deploy sits down, stands up and lifts the leg again with a longer shift: here from a
+        # stand-up on the same draws (floor, masses, motors, pushes)
+        retried = h.aborted
+        run, h = attempt(RETRY_SHIFT_S)
     causes = []
+    if h.aborted is not None:
+        causes.append("lift called off (tipping)")
     if h.fell:
         causes.append("fall")
     if h.lifted_foot_touched:
         causes.append("lifted foot down")
     causes += [f"{b} on floor" for b in h.body_contacts if b != "base"]
     res = EpisodeResult(scenario.name, leg, episode, not causes, causes,
-                        calf_reach_mm=dict(h.calf_reach_mm))
+                        calf_reach_mm=dict(h.calf_reach_mm), retried=retried)
     if causes:
         return res
     ramp = 1.0  # the excitation's lead-in / lead-out (calib.excitation.ExcitationConfig.ramp)
@@ -263,13 +284,18 @@ def model_identity(model_xml) -> dict | None:
 
 def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int = 1,
                  workers: int | None = None, periods: int | None = None,
-                 progress=None, model_xml: str | None = None) -> list[EpisodeResult]:
+                 progress=None, model_xml: str | None = None,
+                 max_tip_deg: float | None = None) -> list[EpisodeResult]:
     """``episodes`` per leg of ``legs`` (default: the legs the policy's JSON lists) under each
     of ``scenarios`` (names of :data:`SCENARIOS`). workers: processes (None: all cores).
     progress(done, total): optional. model_xml: another MJCF model of the Go2 to run on
-    (:mod:`sim.external_model`; None: the URDF's)."""
+    (:mod:`sim.external_model`; None: the URDF's). max_tip_deg: deploy's tip guard, as
+    :func:`run_episode`."""
     from pathlib import Path
 
+    from deploy.tip_guard import TipGuard
+
+    TipGuard(max_tip_deg)  # a bad limit is refused before any worker starts
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     unknown = [s for s in scenarios if s not in SCENARIOS]
@@ -289,7 +315,7 @@ def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int 
             build_model_for(SimConfig(effects=effects, model_xml=model_xml))
         except ValueError as e:
             raise ValueError(f"scenario {s}: {str(e).splitlines()[0]}") from None
-    jobs = [(str(onnx_path), SCENARIOS[s], leg, e, seed, periods, model_xml)
+    jobs = [(str(onnx_path), SCENARIOS[s], leg, e, seed, periods, model_xml, max_tip_deg)
             for s in scenarios for leg in legs for e in range(episodes)]
     out: list[EpisodeResult] = []
     with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
@@ -305,7 +331,8 @@ def _rms(xs) -> float:
 
 
 def summarise(results: list[EpisodeResult]) -> dict:
-    """{scenario: {"legs": {leg: success rate}, "success", "tilt_rms_deg", "rate_rms",
+    """{scenario: {"legs": {leg: success rate}, "success", "retried_held" (successes on a
+    second lift), "tilt_rms_deg", "rate_rms",
     "track_rmse", "cn_median", "cn_p90", "causes": {cause: episodes}, "calf_reach_mm":
     {cause: mm}}}; pooled over legs, the figures over the successful episodes (RMS figures
     pooled as RMS); calf_reach_mm: for each calf cause, the farthest from its foot centre that
@@ -328,6 +355,7 @@ def summarise(results: list[EpisodeResult]) -> dict:
                      for g in dict.fromkeys(r.leg for r in rs)},
             "episodes": len(rs),
             "success": float(np.mean([r.success for r in rs])),
+            "retried_held": sum(bool(r.success and r.retried) for r in rs),
             "tilt_rms_deg": _rms([r.tilt_rms_deg for r in ok]),
             "rate_rms": _rms([r.rate_rms for r in ok]),
             "track_rmse": _rms([r.track_rmse for r in ok]),
@@ -340,14 +368,23 @@ def summarise(results: list[EpisodeResult]) -> dict:
 
 
 def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
-                    elapsed_s: float | None = None, model: dict | None = None) -> str:
+                    elapsed_s: float | None = None, model: dict | None = None,
+                    max_tip_deg: float | None = None) -> str:
     """The page of ``a2i-train transfer`` (one row per scenario); model: the
-    :func:`model_identity` of the model it ran on (None: the URDF's)."""
+    :func:`model_identity` of the model it ran on (None: the URDF's); max_tip_deg: the tip
+    guard's limit it ran with (None: off)."""
     summ = summarise(results)
     legs = list(dict.fromkeys(r.leg for r in results))
     n = max(1, len(results) // max(1, len(summ) * len(legs)))
     leg_arg = "" if legs == list(LEGS) else f" --legs {','.join(legs)}"
     model_arg = "" if model is None else f" --model-xml {model['path']}"
+    tip_arg = "" if max_tip_deg is None else f" --max-tip {max_tip_deg:g}"
+    guard = ("the policy alone (deploy's tip guard, `deploy/tip_guard.py`, off)"
+             if max_tip_deg is None else
+             f"deploy's tip guard at {max_tip_deg:g} deg (`deploy/tip_guard.py`), as on board: "
+             "a lift it calls off is lifted again with a longer shift, from a stand-up on the "
+             "same draws (success in brackets: held on that second lift), and a second lift "
+             "called off fails")
     on_model = ("the Go2 model built from the URDF" if model is None else
                 f"the Go2 model of `{model['path']}` (compiled as the simulator runs it: sha256 "
                 f"{model['sha256'][:16]}; `sim/external_model.py`) instead of the URDF's")
@@ -355,11 +392,12 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
         "# Tripod policy transfer: a second simulator, perturbations not trained for",
         "",
         (f"Produced by `a2i-train transfer {policy} --episodes {n} --seed {seed}{leg_arg}"
-        f"{model_arg}` (`policy_train/transfer.py`): each episode is one calibration of one "
+        f"{model_arg}{tip_arg}` (`policy_train/transfer.py`): each episode is one calibration of one "
         "leg by the on-board runner on `sim.go2` (1 kHz, free base on the floor: the mock "
         f"robot's simulator, not the training environment) with {on_model}, and the "
         "scenario's perturbations drawn afresh. Success: no fall, and over hold and excitation "
-        "no body but a foot on the floor and the lifted foot never down. Figures over the excitation of the successful episodes, "
+        f"no body but a foot on the floor and the lifted foot never down; {guard}. Figures over "
+        "the excitation of the successful episodes, "
         "pooled over legs; the evaluation's targets: success 99 %, tilt 3 deg, rate 0.1 rad/s, "
         "tracking 0.05 rad, CN 1.2. Failures: in how many episodes each thing happened (an "
         "episode that tips over counts a fall and every body that touched the floor; the "
@@ -380,9 +418,10 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
                            for c, k in top) or "-"
         if len(x["causes"]) > TOP_CAUSES:
             causes += ", ..."
+        retry = f" ({x['retried_held']} on a 2nd lift)" if x["retried_held"] else ""
         lines.append(
             f"| {s} | {SCENARIOS[s].description} | {x['episodes']} | "
-            f"{100 * x['success']:.0f} % | {per_leg} % | {x['tilt_rms_deg']:.2f} | "
+            f"{100 * x['success']:.0f} %{retry} | {per_leg} % | {x['tilt_rms_deg']:.2f} | "
             f"{x['rate_rms']:.3f} | {x['track_rmse']:.3f} | {x['cn_median']:.3f} "
             f"({x['cn_p90']:.3f}) | {causes} |")
     if elapsed_s is not None:
@@ -391,24 +430,28 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
 
 
 def write_results(results: list[EpisodeResult], out_md, policy: str, seed: int,
-                  elapsed_s: float | None = None, model: dict | None = None) -> None:
+                  elapsed_s: float | None = None, model: dict | None = None,
+                  max_tip_deg: float | None = None) -> None:
     """The markdown page at ``out_md`` and the episodes beside it (``.json``), atomically;
     model: the :func:`model_identity` of the model it ran on (None: the URDF's)."""
     from pathlib import Path
 
     out_md = Path(out_md)
-    write_text_atomic(out_md, render_markdown(results, policy, seed, elapsed_s, model))
+    write_text_atomic(out_md, render_markdown(results, policy, seed, elapsed_s, model,
+                                              max_tip_deg))
     # one episode per line: a few hundred short rows stay small and diff well
     meta = {"policy": policy, "seed": seed, "elapsed_s": elapsed_s}
     if model is not None:  # pages on the URDF's model keep their earlier form
         meta["model"] = model
+    if max_tip_deg is not None:  # and those of the policy alone theirs
+        meta["max_tip_deg"] = max_tip_deg
     head = json.dumps(meta)[:-1]
     rows = ",\n".join(json.dumps(dataclasses.asdict(r)) for r in results)
     write_text_atomic(out_md.with_suffix(".json"), f'{head}, "episodes": [\n{rows}\n]}}\n')
 
 
 def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None, log=print,
-              model_xml=None):
+              model_xml=None, max_tip_deg=None):
     """:func:`run_transfer` with a progress line about every 10 % (for the CLI)."""
     t0 = time.time()
     last = [0.0]
@@ -419,13 +462,14 @@ def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None,
             log(f"  {done}/{total} episodes, {time.time() - t0:.0f} s")
 
     res = run_transfer(onnx_path, scenarios, legs, episodes, seed, workers, periods, progress,
-                       model_xml)
+                       model_xml, max_tip_deg)
     return res, time.time() - t0
 
 
 def load_results(path) -> tuple[dict, list[EpisodeResult]]:
     """The episodes file :func:`write_results` wrote: ({"policy", "seed", "elapsed_s",
-    "model"}, episodes); "model" None for the URDF's."""
+    "model", "max_tip_deg"}, episodes); "model" None for the URDF's, "max_tip_deg" None for the
+    policy alone."""
     from pathlib import Path
 
     try:
@@ -433,6 +477,7 @@ def load_results(path) -> tuple[dict, list[EpisodeResult]]:
         eps = [EpisodeResult(**e) for e in d["episodes"]]
         meta = {k: d[k] for k in ("policy", "seed", "elapsed_s")}
         meta["model"] = d.get("model")
+        meta["max_tip_deg"] = d.get("max_tip_deg")
     except (KeyError, TypeError, json.JSONDecodeError) as e:
         raise ValueError(f"{path}: not a transfer episodes file ({e})") from None
     return meta, eps
@@ -440,12 +485,13 @@ def load_results(path) -> tuple[dict, list[EpisodeResult]]:
 
 def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResult],
                   policy: str, seed: int, legs, episodes: int,
-                  model: dict | None = None) -> list[EpisodeResult]:
+                  model: dict | None = None,
+                  max_tip_deg: float | None = None) -> list[EpisodeResult]:
     """A page's episodes (:func:`load_results`) with ``new``'s scenarios added or replaced, in
     :data:`SCENARIOS`' order: the page one command over every scenario would have written, since
     an episode's draws depend only on the seed, its scenario, leg and number. ValueError unless
-    the page has this policy, seed, legs, episodes per leg and scenario, and model
-    (:func:`model_identity`, compared by its hash)."""
+    the page has this policy, seed, legs, episodes per leg and scenario, model
+    (:func:`model_identity`, compared by its hash) and tip guard."""
     meta, old = page
     old_legs = list(dict.fromkeys(r.leg for r in old))
     per = {(r.scenario, r.leg) for r in old}
@@ -461,7 +507,8 @@ def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResul
                            ("legs", ",".join(old_legs), ",".join(legs)),
                            ("episodes", old_n, episodes),
                            ("model", _model(old_model),
-                            _model(old_model) if same_model else _model(new_model))):
+                            _model(old_model) if same_model else _model(new_model)),
+                           ("tip guard", meta.get("max_tip_deg"), max_tip_deg)):
         if was != now:
             raise ValueError(f"the page has {what} {was}, not {now}: write a new page")
     redone = {r.scenario for r in new}

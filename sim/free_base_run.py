@@ -60,7 +60,8 @@ class RunHealth:
     floor. duration_s: watched time, s. calf_reach_mm: for each leg whose calf touched the floor
     with more than its foot sphere, the farthest such contact from its foot centre, mm
     (:meth:`~sim.go2.Go2Sim.calf_contact_reach`: up to 30 mm the calf's lower end, which wraps
-    the top of the foot; the knee is 213 mm up).
+    the top of the foot; the knee is 213 mm up). aborted: why the run's driver called its lift
+    off (deploy's tip guard), None if it did not; the watch then ends where it was called off.
     """
 
     max_tilt_deg: float
@@ -74,6 +75,7 @@ class RunHealth:
     fell: bool
     duration_s: float
     calf_reach_mm: dict[str, float] = field(default_factory=dict)
+    aborted: str | None = None
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)

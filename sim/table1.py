@@ -238,6 +238,8 @@ def _free_job(args) -> tuple[list[Table1Row], list[FreeRun]]:
     motion, seed, leg, legs, noises, seeds, a2i_run, record_s = args
     if motion == "a2i":
         run, health = a2i_run(leg)
+        if run is None:
+            raise RuntimeError(f"the A2I run of {leg} was called off: {health.aborted}")
         rows = [r for s in seeds for r in score_run(run, motion, [leg], noises, s)]
         return rows, [FreeRun(motion, leg, None, health)]
     scored = legs if leg is None else (leg,)

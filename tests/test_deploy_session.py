@@ -1,5 +1,6 @@
 """The calibration state machine on fake inputs: a robot that follows its commands exactly."""
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +58,7 @@ class Rig:
                          on_transition=lambda a, b, c: self.transitions.append((a, b, c)),
                          on_report=self.reports.append)
         self.q = full_pose(LIE_POSE_LEG, order="sdk")
+        self.quat = np.array([1.0, 0, 0, 0])
         self.k = 0
 
     def _solve(self, leg, window):
@@ -64,7 +66,7 @@ class Rig:
         return FakeJob()
 
     def tick(self, **kw):
-        inp = TickInput(q=self.q.copy(), dq=np.zeros(12), quat=np.array([1.0, 0, 0, 0]),
+        inp = TickInput(q=self.q.copy(), dq=np.zeros(12), quat=self.quat.copy(),
                         gyro=np.zeros(3), window_mark=self.k, **kw)
         cmd = self.s.step(inp)
         self.k += 1
@@ -236,6 +238,87 @@ def test_imu_failure_aborts_lowers_and_reports_without_solving(meta_paths):
     assert not rig.reports[0].ok and "foot IMU FL failed" in rig.reports[0].error
     # the leg came back down smoothly to where it stood before the lift
     assert rig.s.fault is None
+
+
+def _roll(deg):
+    a = np.radians(deg) / 2
+    return np.array([np.cos(a), np.sin(a), 0.0, 0.0])
+
+
+def test_a_lift_that_tips_the_body_is_called_off_and_the_foot_put_down(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL",),
+              config=dataclasses.replace(CFG, max_tip_deg=5.0, tip_retry_shift_s=None))
+    rig.quat = _roll(3.0)  # a floor tilted 3 deg: the guard measures from the lift's start
+    rig.run_until(State.TRIPOD)
+    while rig.s.phase != "lift":
+        rig.tick()
+    q_start = rig.s._q_start.copy()
+    rig.quat = _roll(7.5)  # 4.5 deg more: inside the limit
+    rig.tick()
+    assert rig.s.state is State.TRIPOD and rig.s._abort is None
+    rig.quat = _roll(8.5)
+    rig.tick()  # seen on this tick, the foot goes down from the next
+    assert "tipped 5.50 deg in lift" in rig.s._abort
+    rig.tick()
+    assert rig.s.state is State.LOWER
+    rig.quat = _roll(3.0)
+    rig.run_until(State.STAND)
+    # back where it stood when the lift began
+    np.testing.assert_allclose(rig.q[sdk_indices("FL")], q_start, atol=1e-9)
+    rig.run_until(State.DONE)
+    assert rig.solves == [] and State.CALIBRATE not in rig.states
+    assert not rig.reports[0].ok and "tipped" in rig.reports[0].error
+    assert rig.s.fault is None
+
+
+def _tip_in_lift(rig, deg=8.0):
+    rig.run_until(State.TRIPOD)
+    while rig.s.phase != "lift":
+        rig.tick()
+    rig.quat = _roll(deg)
+    rig.tick()
+    rig.quat = _roll(0.0)
+    rig.tick()
+    assert rig.s.state is State.LOWER
+
+
+def test_a_tipped_lift_is_tried_once_more_after_replant_with_a_longer_shift(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL", "RL"), config=dataclasses.replace(CFG, max_tip_deg=5.0))
+    _tip_in_lift(rig)
+    rig.run_until(State.CALIBRATE)
+    # down, sat, stood, and FL again before RL, its shift 1 s longer
+    assert rig.states == [State.STAND, State.TRIPOD, State.LOWER, State.STAND, State.REPLANT,
+                          State.STAND, State.TRIPOD, State.CALIBRATE]
+    assert rig.s.leg == "FL" and "again with a 1.2 s shift" in rig.transitions[6][2]
+    sched = rig.s.meta.schedule
+    assert sched.shift_of("FL") == pytest.approx(1.2) and sched.shift_of("RL") == 0.2
+    assert sched.plan("FL") is rig.meta.schedule.plan("FL")  # not optimised again
+    # RL's lift has the policy's own schedule; it tips, and so does its retry: reported
+    for shift in (0.2, 1.2):
+        _tip_in_lift(rig)
+        assert rig.s.leg == "RL" and rig.s.meta.schedule.shift_of("RL") == pytest.approx(shift)
+        assert "tipped" in rig.s._abort
+        assert rig.s.meta.schedule.shift_of("FL") == 0.2
+    rig.run_until(State.DONE)
+    fl, rl = rig.reports
+    assert fl.leg == "FL" and fl.ok and fl.error is None and "tipped" in fl.retried
+    assert rl.leg == "RL" and not rl.ok and "tipped" in rl.error and "tipped" in rl.retried
+    assert rig.s.outcomes == [fl, rl] and len(rig.solves) == 1
+
+
+def test_the_tip_guard_watches_lift_and_hold_only_and_is_off_by_default(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL",), config=dataclasses.replace(CFG, max_tip_deg=5.0))
+    rig.run_until(State.CALIBRATE)
+    rig.quat = _roll(12.0)  # the excitation's sway is not the guard's
+    rig.run_until(State.DONE)
+    assert rig.reports[0].ok
+    off = Rig(meta_paths[0], legs=("FL",))
+    off.run_until(State.TRIPOD)
+    while off.s.phase != "lift":
+        off.tick()
+    off.quat = _roll(12.0)
+    off.run_until(State.DONE)
+    assert off.reports[0].ok
 
 
 def test_two_legs_in_turn(meta_paths):

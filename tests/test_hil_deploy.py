@@ -319,3 +319,23 @@ def test_robot_on_the_floor_all_legs_recover_mounting(tmp_path, slope_deg):
     states = [t[2] for t in result.transitions]
     assert states.count("REPLANT") == len(ALL_LEGS_ORDER) - 1
     assert all(b == "STAND" for a, b in itertools.pairwise(states) if a == "REPLANT")
+
+
+@pytest.mark.skipif(_trained_policies() is None,
+                    reason="no trained tripod policy for FL in policies/")
+def test_cli_a_lift_that_tips_is_called_off_and_the_robot_stays_up(tmp_path, capsys):
+    """`a2i-deploy --max-tip`: with a limit no lift keeps (0.01 deg) the FL lift is called off
+    in its lift phase and the foot goes back down; the robot sits, stands and lifts FL again
+    with a 1 s longer shift, which is called off too; the run ends sitting, not damped: exit 1,
+    the leg reported failed, nothing written for it."""
+    from deploy.cli import main
+
+    code = main(["--leg", "FL", "--sim", "--sim-seed", "3", "--periods", "1",
+                 "--max-tip", "0.01", "--out", str(tmp_path)])
+    assert code == 1
+    out = capsys.readouterr().out
+    assert out.count("TRIPOD -> LOWER: abort: the body tipped") == 2 and "in lift" in out
+    assert "REPLANT" in out and "again with a 3 s shift" in out
+    assert "LOWER -> STAND: foot down" in out and "SIT -> DONE" in out and "DAMP" not in out
+    assert "Leg FL: NO CALIBRATION WRITTEN" in out and "its first lift was called off" in out
+    assert not (tmp_path / "FL.json").exists()

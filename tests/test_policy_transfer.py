@@ -197,15 +197,30 @@ def test_merge_results_adds_and_replaces_scenarios_in_their_order():
         ("weak", True), ("weak", True)]
     for args, what in [(("q.onnx", 1, ["FL"], 2), "policy"), (("p.onnx", 2, ["FL"], 2), "seed"),
                        (("p.onnx", 1, ["FL", "RR"], 2), "legs"),
-                       (("p.onnx", 1, ["FL"], 3), "episodes")]:
+                       (("p.onnx", 1, ["FL"], 3), "episodes"),
+                       (("p.onnx", 1, ["FL"], 2, None, 5.0), "tip guard")]:
         with pytest.raises(ValueError, match=f"the page has {what}"):
             merge_results(page, new, *args)
+
+
+def test_with_the_tip_guard_a_called_off_lift_is_lifted_again_and_reported():
+    """--max-tip plays deploy's tip guard: a limit no lift keeps calls the first lift off, the
+    episode's second lift (1 s more shift) is called off too, and the robot stays up."""
+    v26 = POLICY.with_name("tripod_go2_v26.onnx")
+    if not v26.is_file():
+        pytest.skip("no v26")
+    r = run_episode(str(v26), SCENARIOS["nominal"], "FL", 0, periods=1, max_tip_deg=0.01)
+    assert not r.success and "tipped" in r.retried
+    assert r.causes == ["lift called off (tipping)"]
+    page = render_markdown([r], str(v26), 1, max_tip_deg=0.01)
+    assert "--max-tip 0.01" in page and "tip guard at 0.01 deg" in page
 
 
 @pytest.mark.parametrize("argv, message", [
     (["transfer"], "needs the policy"),
     (["transfer", "POLICY", "--scenarios", "moon"], "unknown scenario(s) moon"),
     (["transfer", "POLICY", "--episodes", "0"], "must be >= 1"),
+    (["transfer", "POLICY", "--max-tip", "0"], "must be in [0.001, 90) deg"),
     (["transfer", "nowhere.onnx"], "no such file"),
 ])
 def test_cli_bad_input_is_one_line_exit_2(argv, message, capsys):

@@ -241,3 +241,18 @@ def test_the_lifted_leg_moves_on_deploys_frames_not_once_per_tick():
     assert out[1][1] > 1.2 * out[5][1], out
     with pytest.raises(ValueError, match="commands_per_tick"):
         run_policy_a2i(pb, "FL", commands_per_tick=3)  # 20 physics steps do not split in 3
+
+
+def test_a_lift_the_tip_guard_calls_off_gives_no_run_and_the_robot_stands():
+    """run_policy_a2i plays deploy's tip guard (deploy.tip_guard): a limit no lift can keep
+    calls this one off in its lift; the leg goes back down and the robot stays up. (v1 levels
+    the body as it lifts; v26 tips it by a tenth of a degree.)"""
+    v26 = POLICY.with_name("tripod_go2_v26.onnx")
+    if not v26.is_file():
+        pytest.skip("no v26")
+    pb = load_policy(v26)
+    run, health = run_policy_a2i(pb, "FL", settle_s=SETTLE, periods=1, after_s=0.0,
+                                 max_tip_deg=0.01)
+    assert run is None
+    assert "tipped" in health.aborted and "in lift" in health.aborted
+    assert not health.fell and health.body_contacts == ()
