@@ -164,10 +164,10 @@ def run_policy_a2i(
     model_xml: another MJCF model of the Go2 to run on (:mod:`sim.external_model`; None: the
     URDF's). adapt: the tracking adapter on or off (None: the JSON's). max_tip_deg: deploy's
     tip guard (:mod:`deploy.tip_guard`; None: off, as deploy's default): a lift or hold that
-    tips the body this far
-    is called off as the session does, the leg brought back down over the schedule's
-    ``abort_lower`` from the next tick, with the policy balancing. extra_shift_s: s added to
-    the leg's shift (the second try of a lift the guard called off, as deploy makes it).
+    tips the body this far is called off as the session does, the leg brought back down over
+    the schedule's ``abort_lower`` from the next tick, with the policy balancing.
+    extra_shift_s: s added to the leg's shift (the second try of a lift the guard called off,
+    as deploy makes it).
 
     Returns the :class:`MotionRun` of the excitation phase (sim-time stamps; motion name
     ``a2i_<leg>``) and the :class:`RunHealth` of hold + excitation (``fell`` covers the whole
