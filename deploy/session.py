@@ -127,6 +127,7 @@ class SessionConfig:
     commands_per_tick: int = COMMANDS_PER_TICK
 
     def __post_init__(self) -> None:
+        TipGuard(self.max_tip_deg)  # a bad limit is refused here, not at the first lift
         r = self.tip_retry_shift_s
         if r is not None and not (isinstance(r, (int, float)) and math.isfinite(r) and r > 0):
             raise ValueError(f"tip_retry_shift_s must be a positive number of s or None, got {r!r}")

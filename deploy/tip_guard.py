@@ -16,9 +16,9 @@ body over the three feet it will stand on. The same five FR lifts, from a stand-
 shift 1 s longer (3 s), all held.
 
 Why it is off by default: on that model v26's RL lifts lean the body by up to 6.3 deg (median
-5) during the hold as a matter of course, in every scenario (RR's under 1 deg). A limit that catches the falls
-(5 deg) called off 115 of 220 RL lifts that would have held; their second lifts held but
-four. A plain tilt limit cannot tell that lean from the start of a fall, so the guard is for a
+5) during the hold as a matter of course, in every scenario (RR's under 1 deg). A limit that
+catches the falls (5 deg) called off 115 of 220 RL lifts that would have held; their second
+lifts held but four. A plain tilt limit cannot tell that lean from the start of a fall, so the guard is for a
 floor known to be tilted (``a2i-deploy --max-tip 5``), where a called-off lift costs a sit,
 a stand and a second lift, and a fall costs the robot.
 
