@@ -17,14 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import signal
 import sys
 import time
 from pathlib import Path
 
 from calib.joints import LEGS, check_leg
-from deploy.tip_guard import MAX_TIP_DEG
+from deploy.tip_guard import DEFAULT_TIP_LIMITS, TipLimits
 
 __all__ = ["main", "parse_imu"]
 
@@ -93,11 +92,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="lift the next leg from where the last lift left the feet, without "
                         "sitting down and standing up again in between (faster; only the first "
                         "lift then starts from the stance the policy was evaluated from)")
-    p.add_argument("--max-tip", type=float, default=0.0, metavar="DEG",
-                   help="on a floor that may be tilted: call a lift off, put the foot back down "
-                        "and lift the leg once more with a longer shift when, lifting or "
-                        "holding, the body tips this far from its tilt when the lift began "
-                        f"(e.g. {MAX_TIP_DEG:g}; default 0: never; see deploy/tip_guard.py)")
+    p.add_argument("--max-tip", default=str(DEFAULT_TIP_LIMITS), metavar="LIFT[,HOLD]",
+                   help="call a lift off, put the foot back down and lift the leg once more "
+                        "with a longer shift when the body tips this many deg from its tilt "
+                        "when the lift began: LIFT while the foot leaves the floor, HOLD while "
+                        "the leg swings to the excitation's start (one number: both; 0: never; "
+                        f"default {DEFAULT_TIP_LIMITS}; see deploy/tip_guard.py)")
     p.add_argument("--record-seconds", type=float, default=180.0, metavar="S",
                    help="recorder history kept in memory and saved as MCAP (default 180)")
     p.add_argument("--force", action="store_true",
@@ -140,9 +140,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         legs = _legs(args.leg)
         imus = [parse_imu(s) for s in args.imu]
-        if not (math.isfinite(args.max_tip) and args.max_tip >= 0):
-            raise ValueError(f"--max-tip must be degrees >= 0 (0: never), got {args.max_tip}")
-        max_tip = None if args.max_tip == 0 else args.max_tip
+        try:
+            max_tip = TipLimits.parse(args.max_tip)
+        except ValueError as e:
+            raise ValueError(f"--max-tip: {e}") from None
     except ValueError as e:
         print(f"a2i-deploy: error: {e}", file=sys.stderr)
         return 2
@@ -207,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
                        clock=clock, record_seconds=args.record_seconds, force=args.force,
                        truth=truth, session_metadata=session_meta, progress=_say,
                        session=SessionConfig(replant=not args.no_replant,
-                                             max_tip_deg=max_tip))
+                                             max_tip=max_tip))
     runner = None
     try:
         try:

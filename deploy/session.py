@@ -12,9 +12,9 @@ States and their exits (every transition is reported with its cause)::
               leg's lift command; the leg's motors follow the lift
               schedule (shift, lift, hold). -> CALIBRATE when the excitation begins.
               The lifted leg must track its targets by the end of hold, else abort -> LOWER.
-              With ``max_tip_deg``, a lift or hold that tips the body that far from its tilt
-              when the lift began aborts -> LOWER (``deploy.tip_guard``); the leg is then
-              lifted once more, after REPLANT, with its shift ``tip_retry_shift_s`` longer.
+              A lift or hold that tips the body past ``max_tip`` from its tilt when the
+              lift began aborts -> LOWER (``deploy.tip_guard``); the leg is then lifted
+              once more, after REPLANT, with its shift ``tip_retry_shift_s`` longer.
     CALIBRATE the excitation plan on the lifted leg; its span is the recording window of SOLVE.
               -> LOWER when it ends; a failed foot IMU aborts -> LOWER (no result).
     LOWER     the schedule's lower phase, then ``lower_settle_s`` of the policy alone (none by
@@ -59,7 +59,7 @@ from calib.joints import EFFORT_LIMIT, LIE_POSE_LEG, check_leg, full_pose, sdk_i
 from deploy.lift_schedule import COMMANDS_PER_TICK, LegTarget, abort_targets
 from deploy.observation import build_observation, projected_gravity
 from deploy.supervisor import DAMP_KD, SafetySupervisor
-from deploy.tip_guard import RETRY_SHIFT_S, TipGuard
+from deploy.tip_guard import DEFAULT_TIP_LIMITS, RETRY_SHIFT_S, TipGuard, TipLimits
 from deploy.tracking_adapter import TrackingAdapter
 
 __all__ = ["Command", "Session", "SessionConfig", "State", "TickInput"]
@@ -112,10 +112,10 @@ class SessionConfig:
     # on a floor tilted 4 deg (front or left side down) tipped over lifting FL, third, from
     # where RL and RR had left the feet, while FL lifted first held
     replant: bool = True
-    # a lift (lift, hold) that tips the body this many deg from its tilt when the lift began is
-    # called off, the foot put back down (deploy.tip_guard, which says why it is off by
-    # default; a2i-deploy --max-tip 5); None: never
-    max_tip_deg: float | None = None
+    # a lift that tips the body this many deg from its tilt when the lift began (lifting,
+    # holding) is called off, the foot put back down (deploy.tip_guard, which says where the
+    # limits come from; a2i-deploy --max-tip); None: never
+    max_tip: TipLimits | None = DEFAULT_TIP_LIMITS
     # a lift the tip guard called off is tried once more, after REPLANT, with its shift this
     # much longer (s); None: not tried again
     tip_retry_shift_s: float | None = RETRY_SHIFT_S
@@ -127,7 +127,8 @@ class SessionConfig:
     commands_per_tick: int = COMMANDS_PER_TICK
 
     def __post_init__(self) -> None:
-        TipGuard(self.max_tip_deg)  # a bad limit is refused here, not at the first lift
+        # a bad limit is refused here, not at the first lift; a number or a pair is taken too
+        object.__setattr__(self, "max_tip", TipLimits.of(self.max_tip))
         r = self.tip_retry_shift_s
         if r is not None and not (isinstance(r, (int, float)) and math.isfinite(r) and r > 0):
             raise ValueError(f"tip_retry_shift_s must be a positive number of s or None, got {r!r}")
@@ -244,7 +245,7 @@ class Session:
         self._stance_used = False  # a leg was lifted since the last stand-up
         self._adapter: TrackingAdapter | None = None  # the lifted leg's, where the schedule's adapt
         self._adapted = np.zeros(3)
-        self._tip = TipGuard(self.cfg.max_tip_deg)
+        self._tip = TipGuard(self.cfg.max_tip)
         self._tipped = False  # this lift was called off by the tip guard
         self._retry: LegOutcome | None = None  # a tipped lift's outcome, to be tried again
         self.lie_pose = full_pose(LIE_POSE_LEG, order="sdk")

@@ -270,7 +270,7 @@ def _transfer(a) -> int:
           flush=True)
     res, elapsed = timed_run(a.onnx, a.scenarios, a.legs, a.episodes, a.seed, a.workers,
                              log=lambda s: print(s, flush=True), model_xml=a.model_xml,
-                             max_tip_deg=a.max_tip)
+                             max_tip=a.max_tip)
     for s, x in summarise(res).items():
         legs = " ".join(f"{g} {100 * v:.0f} %" for g, v in x["legs"].items())
         print(f"{s:15s} success {100 * x['success']:5.1f} % ({legs}); rate "
@@ -339,6 +339,16 @@ def _number(lo: float, hi: float, what: str):
             raise argparse.ArgumentTypeError(f"{what}, got {v}")
         return v
     return parse
+
+
+def _tip_limits(text: str):
+    """argparse type: deploy's tip guard limits, "LIFT[,HOLD]" deg ("0": off)."""
+    from deploy.tip_guard import TipLimits
+
+    try:
+        return TipLimits.parse(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _pack(a) -> int:
@@ -754,10 +764,10 @@ def main(argv: list[str] | None = None) -> int:
     x.add_argument("--model-xml", default=None, metavar="MJCF",
                    help="run on another MJCF model of the Go2 instead of the URDF's (e.g. MuJoCo "
                         "Menagerie's unitree_go2/scene.xml; see sim/external_model.py)")
-    x.add_argument("--max-tip", type=_number(1e-3, 90.0, "must be in [0.001, 90) deg"),
-                   default=None, metavar="DEG",
-                   help="play deploy's tip guard with this limit, as a2i-deploy --max-tip "
-                        "(default: off, the policy alone)")
+    x.add_argument("--max-tip", type=_tip_limits, default=None, metavar="LIFT[,HOLD]",
+                   help="play deploy's tip guard with these limits, deg, as a2i-deploy "
+                        "--max-tip (e.g. 5,8, deploy's default; one number: both phases; "
+                        "default: off, the policy alone)")
     c = sub.add_parser("compare", help="two transfer runs of the same seed, paired episode by "
                                        "episode (which policy holds more of the same draws)")
     c.add_argument("episodes_files", nargs=2, metavar="EPISODES_JSON",

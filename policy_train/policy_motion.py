@@ -145,7 +145,7 @@ def run_policy_a2i(
     commands_per_tick: int = COMMANDS_PER_TICK,
     model_xml: str | None = None,
     adapt: bool | None = None,
-    max_tip_deg: float | None = None,
+    max_tip=None,
     extra_shift_s: float = 0.0,
 ) -> tuple[MotionRun | None, RunHealth]:
     """The A2I calibration of ``leg`` by the tripod policy on the free-base simulated Go2.
@@ -162,10 +162,11 @@ def run_policy_a2i(
     each carrying the lifted leg's schedule at its time (deploy's
     :data:`deploy.lift_schedule.COMMANDS_PER_TICK`; must divide the tick's physics steps).
     model_xml: another MJCF model of the Go2 to run on (:mod:`sim.external_model`; None: the
-    URDF's). adapt: the tracking adapter on or off (None: the JSON's). max_tip_deg: deploy's
-    tip guard (:mod:`deploy.tip_guard`; None: off, as deploy's default): a lift or hold that
-    tips the body this far is called off as the session does, the leg brought back down over
-    the schedule's ``abort_lower`` from the next tick, with the policy balancing.
+    URDF's). adapt: the tracking adapter on or off (None: the JSON's). max_tip: deploy's tip
+    guard's limits (:class:`deploy.tip_guard.TipLimits`, a number or a (lift, hold) pair, deg;
+    None: off, the policy alone): a lift or hold that tips the body past its limit is called
+    off as the session does, the leg brought back down over the schedule's ``abort_lower`` from
+    the next tick, with the policy balancing.
     extra_shift_s: s added to the leg's shift (the second try of a lift the guard called off,
     as deploy makes it).
 
@@ -232,7 +233,7 @@ def run_policy_a2i(
     adapter = TrackingAdapter(sched.kp, sched.kd) if adapt else None
     t_exc0 = float(dur[:3].sum())
     applied = np.zeros(3)  # the adapter's torque in the frame the motors hold
-    guard = TipGuard(max_tip_deg)
+    guard = TipGuard(max_tip)
     aborted = None
     abort_pending = False
     k_stop = n_total

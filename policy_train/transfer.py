@@ -27,7 +27,7 @@ record the model (path and the compiled model's hash) and do not take episodes o
 
 An episode succeeds as the evaluation's do: no fall over the whole run, and over the hold and
 the excitation no body but a foot on the floor and the lifted foot never down
-(:class:`sim.free_base_run.RunHealth`). With ``max_tip_deg`` (``--max-tip``) deploy's tip
+(:class:`sim.free_base_run.RunHealth`). With ``max_tip`` (``--max-tip``) deploy's tip
 guard (:mod:`deploy.tip_guard`) plays as on board: a lift it calls off is lifted again with a
 longer shift, here from a stand-up on the same draws, and the episode is that second lift's
 (``EpisodeResult.retried``); a second lift called off fails, "lift called off (tipping)", with
@@ -52,6 +52,7 @@ import numpy as np
 from calib.atomic import write_text_atomic
 from calib.excitation import covariance_kappa
 from calib.joints import LEGS, check_leg, model_indices
+from deploy.tip_guard import RETRY_SHIFT_S, TipLimits
 from sim.effects import (
     ActuationLatency,
     Armature,
@@ -213,19 +214,19 @@ def _episode_seed(seed: int, scenario: str, leg: str, episode: int) -> np.random
 
 def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed: int = 1,
                 periods: int | None = None, model_xml: str | None = None,
-                max_tip_deg: float | None = None) -> EpisodeResult:
+                max_tip=None) -> EpisodeResult:
     """One calibration of ``leg`` by the policy under ``scenario`` (its draws from ``seed``,
     the scenario, the leg and ``episode``). periods: None for the JSON's. model_xml: another
-    MJCF model of the Go2 (:mod:`sim.external_model`; None: the URDF's). max_tip_deg: deploy's
-    tip guard with this limit (:mod:`deploy.tip_guard`; None: off, the policy alone)."""
-    from deploy.tip_guard import RETRY_SHIFT_S
+    MJCF model of the Go2 (:mod:`sim.external_model`; None: the URDF's). max_tip: deploy's
+    tip guard with these limits (:class:`deploy.tip_guard.TipLimits`, a number or a (lift,
+    hold) pair, deg; None: off, the policy alone)."""
     from policy_train.policy_motion import run_policy_a2i
 
     def attempt(extra_shift_s=0.0):
         effects, dist = scenario.draw(_episode_seed(seed, scenario.name, leg, episode))
         return run_policy_a2i(onnx_path, leg, periods=periods, effects=effects,
                               disturbance=dist, model_xml=model_xml,
-                              max_tip_deg=max_tip_deg, extra_shift_s=extra_shift_s)
+                              max_tip=max_tip, extra_shift_s=extra_shift_s)
 
     run, h = attempt()
     retried = None
@@ -285,17 +286,15 @@ def model_identity(model_xml) -> dict | None:
 def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int = 1,
                  workers: int | None = None, periods: int | None = None,
                  progress=None, model_xml: str | None = None,
-                 max_tip_deg: float | None = None) -> list[EpisodeResult]:
+                 max_tip=None) -> list[EpisodeResult]:
     """``episodes`` per leg of ``legs`` (default: the legs the policy's JSON lists) under each
     of ``scenarios`` (names of :data:`SCENARIOS`). workers: processes (None: all cores).
     progress(done, total): optional. model_xml: another MJCF model of the Go2 to run on
-    (:mod:`sim.external_model`; None: the URDF's). max_tip_deg: deploy's tip guard, as
+    (:mod:`sim.external_model`; None: the URDF's). max_tip: deploy's tip guard, as
     :func:`run_episode`."""
     from pathlib import Path
 
-    from deploy.tip_guard import TipGuard
-
-    TipGuard(max_tip_deg)  # a bad limit is refused before any worker starts
+    max_tip = TipLimits.of(max_tip)  # a bad limit is refused before any worker starts
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     unknown = [s for s in scenarios if s not in SCENARIOS]
@@ -315,7 +314,7 @@ def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int 
             build_model_for(SimConfig(effects=effects, model_xml=model_xml))
         except ValueError as e:
             raise ValueError(f"scenario {s}: {str(e).splitlines()[0]}") from None
-    jobs = [(str(onnx_path), SCENARIOS[s], leg, e, seed, periods, model_xml, max_tip_deg)
+    jobs = [(str(onnx_path), SCENARIOS[s], leg, e, seed, periods, model_xml, max_tip)
             for s in scenarios for leg in legs for e in range(episodes)]
     out: list[EpisodeResult] = []
     with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
@@ -369,19 +368,22 @@ def summarise(results: list[EpisodeResult]) -> dict:
 
 def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
                     elapsed_s: float | None = None, model: dict | None = None,
-                    max_tip_deg: float | None = None) -> str:
+                    max_tip=None) -> str:
     """The page of ``a2i-train transfer`` (one row per scenario); model: the
-    :func:`model_identity` of the model it ran on (None: the URDF's); max_tip_deg: the tip
-    guard's limit it ran with (None: off)."""
+    :func:`model_identity` of the model it ran on (None: the URDF's); max_tip: the tip
+    guard's limits it ran with (:class:`deploy.tip_guard.TipLimits`; None: off)."""
+    max_tip = TipLimits.of(max_tip)
     summ = summarise(results)
     legs = list(dict.fromkeys(r.leg for r in results))
     n = max(1, len(results) // max(1, len(summ) * len(legs)))
     leg_arg = "" if legs == list(LEGS) else f" --legs {','.join(legs)}"
     model_arg = "" if model is None else f" --model-xml {model['path']}"
-    tip_arg = "" if max_tip_deg is None else f" --max-tip {max_tip_deg:g}"
+    tip_arg = "" if max_tip is None else f" --max-tip {max_tip}"
+    limits = (None if max_tip is None else f"{max_tip.lift:g} deg" if max_tip.lift == max_tip.hold
+              else f"{max_tip.lift:g} deg lifting, {max_tip.hold:g} deg holding")
     guard = ("the policy alone (deploy's tip guard, `deploy/tip_guard.py`, off)"
-             if max_tip_deg is None else
-             f"deploy's tip guard at {max_tip_deg:g} deg (`deploy/tip_guard.py`), as on board: "
+             if max_tip is None else
+             f"deploy's tip guard at {limits} (`deploy/tip_guard.py`), as on board: "
              "a lift it calls off is lifted again with a longer shift, from a stand-up on the "
              "same draws (success in brackets: held on that second lift), and a second lift "
              "called off fails")
@@ -431,27 +433,27 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
 
 def write_results(results: list[EpisodeResult], out_md, policy: str, seed: int,
                   elapsed_s: float | None = None, model: dict | None = None,
-                  max_tip_deg: float | None = None) -> None:
+                  max_tip=None) -> None:
     """The markdown page at ``out_md`` and the episodes beside it (``.json``), atomically;
     model: the :func:`model_identity` of the model it ran on (None: the URDF's)."""
     from pathlib import Path
 
     out_md = Path(out_md)
-    write_text_atomic(out_md, render_markdown(results, policy, seed, elapsed_s, model,
-                                              max_tip_deg))
+    max_tip = TipLimits.of(max_tip)
+    write_text_atomic(out_md, render_markdown(results, policy, seed, elapsed_s, model, max_tip))
     # one episode per line: a few hundred short rows stay small and diff well
     meta = {"policy": policy, "seed": seed, "elapsed_s": elapsed_s}
     if model is not None:  # pages on the URDF's model keep their earlier form
         meta["model"] = model
-    if max_tip_deg is not None:  # and those of the policy alone theirs
-        meta["max_tip_deg"] = max_tip_deg
+    if max_tip is not None:  # and those of the policy alone theirs
+        meta["max_tip_deg"] = max_tip.to_json()
     head = json.dumps(meta)[:-1]
     rows = ",\n".join(json.dumps(dataclasses.asdict(r)) for r in results)
     write_text_atomic(out_md.with_suffix(".json"), f'{head}, "episodes": [\n{rows}\n]}}\n')
 
 
 def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None, log=print,
-              model_xml=None, max_tip_deg=None):
+              model_xml=None, max_tip=None):
     """:func:`run_transfer` with a progress line about every 10 % (for the CLI)."""
     t0 = time.time()
     last = [0.0]
@@ -462,14 +464,14 @@ def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None,
             log(f"  {done}/{total} episodes, {time.time() - t0:.0f} s")
 
     res = run_transfer(onnx_path, scenarios, legs, episodes, seed, workers, periods, progress,
-                       model_xml, max_tip_deg)
+                       model_xml, max_tip)
     return res, time.time() - t0
 
 
 def load_results(path) -> tuple[dict, list[EpisodeResult]]:
     """The episodes file :func:`write_results` wrote: ({"policy", "seed", "elapsed_s",
-    "model", "max_tip_deg"}, episodes); "model" None for the URDF's, "max_tip_deg" None for the
-    policy alone."""
+    "model", "max_tip"}, episodes); "model" None for the URDF's, "max_tip" (a
+    :class:`deploy.tip_guard.TipLimits`) None for the policy alone."""
     from pathlib import Path
 
     try:
@@ -477,8 +479,8 @@ def load_results(path) -> tuple[dict, list[EpisodeResult]]:
         eps = [EpisodeResult(**e) for e in d["episodes"]]
         meta = {k: d[k] for k in ("policy", "seed", "elapsed_s")}
         meta["model"] = d.get("model")
-        meta["max_tip_deg"] = d.get("max_tip_deg")
-    except (KeyError, TypeError, json.JSONDecodeError) as e:
+        meta["max_tip"] = TipLimits.of(d.get("max_tip_deg"))
+    except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{path}: not a transfer episodes file ({e})") from None
     return meta, eps
 
@@ -486,7 +488,7 @@ def load_results(path) -> tuple[dict, list[EpisodeResult]]:
 def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResult],
                   policy: str, seed: int, legs, episodes: int,
                   model: dict | None = None,
-                  max_tip_deg: float | None = None) -> list[EpisodeResult]:
+                  max_tip=None) -> list[EpisodeResult]:
     """A page's episodes (:func:`load_results`) with ``new``'s scenarios added or replaced, in
     :data:`SCENARIOS`' order: the page one command over every scenario would have written, since
     an episode's draws depend only on the seed, its scenario, leg and number. ValueError unless
@@ -508,7 +510,7 @@ def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResul
                            ("episodes", old_n, episodes),
                            ("model", _model(old_model),
                             _model(old_model) if same_model else _model(new_model)),
-                           ("tip guard", meta.get("max_tip_deg"), max_tip_deg)):
+                           ("tip guard", meta.get("max_tip"), TipLimits.of(max_tip))):
         if was != now:
             raise ValueError(f"the page has {what} {was}, not {now}: write a new page")
     redone = {r.scenario for r in new}

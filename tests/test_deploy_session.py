@@ -11,6 +11,7 @@ from deploy.lift_schedule import COMMANDS_PER_TICK, LiftSchedule
 from deploy.policy import PolicyMeta, PolicyRunner
 from deploy.session import Session, SessionConfig, State, TickInput
 from deploy.supervisor import SafetySupervisor, SupervisorConfig
+from deploy.tip_guard import DEFAULT_TIP_LIMITS, TipLimits
 
 pytest.importorskip("onnx")
 
@@ -247,7 +248,7 @@ def _roll(deg):
 
 def test_a_lift_that_tips_the_body_is_called_off_and_the_foot_put_down(meta_paths):
     rig = Rig(meta_paths[0], legs=("FL",),
-              config=dataclasses.replace(CFG, max_tip_deg=5.0, tip_retry_shift_s=None))
+              config=dataclasses.replace(CFG, tip_retry_shift_s=None))  # the default limits
     rig.quat = _roll(3.0)  # a floor tilted 3 deg: the guard measures from the lift's start
     rig.run_until(State.TRIPOD)
     while rig.s.phase != "lift":
@@ -283,7 +284,7 @@ def _tip_in_lift(rig, deg=8.0):
 
 
 def test_a_tipped_lift_is_tried_once_more_after_replant_with_a_longer_shift(meta_paths):
-    rig = Rig(meta_paths[0], legs=("FL", "RL"), config=dataclasses.replace(CFG, max_tip_deg=5.0))
+    rig = Rig(meta_paths[0], legs=("FL", "RL"))
     _tip_in_lift(rig)
     rig.run_until(State.CALIBRATE)
     # down, sat, stood, and FL again before RL, its shift 1 s longer
@@ -306,13 +307,30 @@ def test_a_tipped_lift_is_tried_once_more_after_replant_with_a_longer_shift(meta
     assert rig.s.outcomes == [fl, rl] and len(rig.solves) == 1
 
 
-def test_the_tip_guard_watches_lift_and_hold_only_and_is_off_by_default(meta_paths):
-    rig = Rig(meta_paths[0], legs=("FL",), config=dataclasses.replace(CFG, max_tip_deg=5.0))
+def test_the_hold_has_its_own_limit(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL",), config=dataclasses.replace(CFG, tip_retry_shift_s=None))
+    rig.run_until(State.TRIPOD)
+    while rig.s.phase != "hold":
+        rig.tick()
+    rig.quat = _roll(7.5)  # past the lift's 5 deg, within the hold's 8: a planned lean
+    rig.tick()
+    assert rig.s.state is State.TRIPOD and rig.s._abort is None
+    rig.quat = _roll(8.5)
+    rig.tick()
+    assert "tipped 8.50 deg in hold" in rig.s._abort and "limit 8" in rig.s._abort
+
+
+def test_the_tip_guard_watches_lift_and_hold_only_and_none_is_off(meta_paths):
+    assert CFG.max_tip == DEFAULT_TIP_LIMITS  # on unless turned off
+    assert dataclasses.replace(CFG, max_tip=6.0).max_tip == TipLimits(6.0, 6.0)
+    with pytest.raises(ValueError, match="tip limit"):
+        dataclasses.replace(CFG, max_tip=(5.0, -1.0))
+    rig = Rig(meta_paths[0], legs=("FL",))
     rig.run_until(State.CALIBRATE)
     rig.quat = _roll(12.0)  # the excitation's sway is not the guard's
     rig.run_until(State.DONE)
     assert rig.reports[0].ok
-    off = Rig(meta_paths[0], legs=("FL",))
+    off = Rig(meta_paths[0], legs=("FL",), config=dataclasses.replace(CFG, max_tip=None))
     off.run_until(State.TRIPOD)
     while off.s.phase != "lift":
         off.tick()

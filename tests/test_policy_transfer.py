@@ -21,6 +21,7 @@ from policy_train.transfer import (
     SCENARIOS,
     EpisodeResult,
     compare,
+    load_results,
     merge_results,
     render_markdown,
     run_episode,
@@ -209,18 +210,35 @@ def test_with_the_tip_guard_a_called_off_lift_is_lifted_again_and_reported():
     v26 = POLICY.with_name("tripod_go2_v26.onnx")
     if not v26.is_file():
         pytest.skip("no v26")
-    r = run_episode(str(v26), SCENARIOS["nominal"], "FL", 0, periods=1, max_tip_deg=0.01)
+    r = run_episode(str(v26), SCENARIOS["nominal"], "FL", 0, periods=1, max_tip=0.01)
     assert not r.success and "tipped" in r.retried
     assert r.causes == ["lift called off (tipping)"]
-    page = render_markdown([r], str(v26), 1, max_tip_deg=0.01)
+    page = render_markdown([r], str(v26), 1, max_tip=0.01)
     assert "--max-tip 0.01" in page and "tip guard at 0.01 deg" in page
+
+
+def test_a_page_records_the_tip_limits_of_each_phase(tmp_path):
+    from deploy.tip_guard import TipLimits
+
+    res = _run({"nominal": [True, False]})
+    write_results(res, tmp_path / "p.md", "p.onnx", 1, 1.0, None, (5.0, 8.0))
+    text = (tmp_path / "p.md").read_text()
+    assert "--max-tip 5,8" in text and "5 deg lifting, 8 deg holding" in text
+    meta, eps = load_results(tmp_path / "p.json")
+    assert meta["max_tip"] == TipLimits(5.0, 8.0) and len(eps) == 2
+    # a page with one limit for both phases (before the phases had their own) reads the same
+    merge_results((dict(meta, max_tip=TipLimits.of(5.0)), eps), [], "p.onnx", 1, ["FL"], 2,
+                  None, 5.0)
+    with pytest.raises(ValueError, match="the page has tip guard 5,8, not 5"):
+        merge_results((meta, eps), [], "p.onnx", 1, ["FL"], 2, None, 5.0)
 
 
 @pytest.mark.parametrize("argv, message", [
     (["transfer"], "needs the policy"),
     (["transfer", "POLICY", "--scenarios", "moon"], "unknown scenario(s) moon"),
     (["transfer", "POLICY", "--episodes", "0"], "must be >= 1"),
-    (["transfer", "POLICY", "--max-tip", "0"], "must be in [0.001, 90) deg"),
+    (["transfer", "POLICY", "--max-tip", "5,x"], "tip limits are LIFT[,HOLD] deg"),
+    (["transfer", "POLICY", "--max-tip", "5,95"], "(hold) must be in (0, 90) deg"),
     (["transfer", "nowhere.onnx"], "no such file"),
 ])
 def test_cli_bad_input_is_one_line_exit_2(argv, message, capsys):

@@ -252,7 +252,7 @@ def test_a_lift_the_tip_guard_calls_off_gives_no_run_and_the_robot_stands():
         pytest.skip("no v26")
     pb = load_policy(v26)
     run, health = run_policy_a2i(pb, "FL", settle_s=SETTLE, periods=1, after_s=0.0,
-                                 max_tip_deg=0.01)
+                                 max_tip=0.01)
     assert run is None
     assert "tipped" in health.aborted and "in lift" in health.aborted
     assert not health.fell and health.body_contacts == ()
