@@ -6,7 +6,8 @@
    command, 4 foot IMUs at 400 Hz on their own ptys: (a) in-process (handle_lowcmd + advance)
    with no reader on the ports, (b) in-process with a SerialImuReader draining every port,
    (c) over Zenoh on 127.0.0.1 with a 50 Hz lockstep client (waits for the quantum's last
-   lowstate, then sends the next command).
+   lowstate, then sends the next command). Without readers (a, c) the full ports drop their
+   frames at once (``lockstep_port_wait_s`` 0) instead of waiting for a reader first.
 2. Realtime: lowstate latency from the instant it is due (start + tau + D) to its arrival in a
    Zenoh subscriber in the same process, p50 / p99 / max, and the mock's late physics ticks.
 """
@@ -44,7 +45,8 @@ def hold_stand() -> bytes:
 
 def lockstep_inprocess(sim_s: float, readers: bool) -> float:
     cfg = MockConfig(listen=[], clock="lockstep", initial_pose="standing", foot_imus=IMUS_400,
-                     lockstep_quantum_s=0.02)  # a 50 Hz client: one 20 ms quantum per command
+                     lockstep_quantum_s=0.02,  # a 50 Hz client: one 20 ms quantum per command
+                     **({} if readers else {"lockstep_port_wait_s": 0.0}))
     cmd = hold_stand()
     with MockRobot(cfg, transport=False) as r:
         rd = [SerialImuReader(p).start() for p in r.imu_ports.values()] if readers else []
@@ -65,7 +67,7 @@ def lockstep_inprocess(sim_s: float, readers: bool) -> float:
 def lockstep_zenoh(sim_s: float) -> float:
     ep = free_endpoint()
     cfg = MockConfig(listen=[ep], clock="lockstep", initial_pose="standing", foot_imus=IMUS_400,
-                     lockstep_quantum_s=0.02)
+                     lockstep_quantum_s=0.02, lockstep_port_wait_s=0.0)
     cmd = hold_stand()
     robot = MockRobot(cfg).start()
     client = Transport(TransportConfig(connect=[ep])).open()

@@ -454,8 +454,8 @@ class DeployRunner:
         """A silent foot IMU of the leg being lifted is an error (port open, no frames: wrong
         port, wrong protocol or baud, receiver off), found before SOLVE has nothing to use.
         Silent for ``imu_silence_s`` of ticks and of wall time both: in lockstep the ticks can
-        outrun the reader thread (two runs sharing two cores aborted lifts whose IMUs were
-        streaming)."""
+        outrun a reader thread short of CPU (and the lockstep mock waits for its ports to take
+        its frames rather than drop them: ``hw.mock.foot_imus``)."""
         s = self.session
         leg = s.leg
         if leg is None or s.state not in (State.TRIPOD, State.CALIBRATE):

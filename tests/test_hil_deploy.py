@@ -191,6 +191,41 @@ def test_silent_imu_port_aborts_the_leg_before_solve(policies, tmp_path):
     assert not (tmp_path / "FL.json").exists()
 
 
+def test_lockstep_mock_waits_for_a_slow_imu_reader_and_drops_no_frame(policies, tmp_path,
+                                                                   monkeypatch):
+    """A reader thread short of CPU (each sample takes 1 ms to record: 8 ms per 20 ms tick,
+    slower than this loop ticks): the lockstep mock waits for its ports to take the frames, so
+    none is lost (a mock that drops them, ``lockstep_port_wait_s`` 0, lost some 1 500 per port
+    here)."""
+    import time
+
+    record = DeployRunner._imu_recorder
+
+    def slow_recorder(self, default_leg):
+        on_sample = record(self, default_leg)
+
+        def slow(s):
+            time.sleep(0.001)
+            on_sample(s)
+        return slow
+
+    monkeypatch.setattr(DeployRunner, "_imu_recorder", slow_recorder)
+    robot = start_mock(seed=21)
+    try:
+        result = deploy(robot, policies["hold"], ["FL"], tmp_path)
+        dropped = {leg: c.frames_dropped for leg, c in robot.channels.items()}
+    finally:
+        robot.stop()
+    assert result.outcomes[0].ok, result.outcomes[0].error
+    assert dropped == {leg: 0 for leg in dropped}
+    from hw.mcap_io import read_mcap
+
+    # what the session recorded runs without a gap (the slow reader still had a backlog when
+    # the loop stopped, so its last frames are not in the file)
+    seq = read_mcap(result.mcap_path).imu["FL"]["seq"].astype(int)
+    assert len(seq) > 2000 and np.all(np.diff(seq) % 65536 == 1)
+
+
 def test_l2_b_mid_motion_damps_within_one_tick(policies, tmp_path):
     robot = start_mock(seed=5)
     try:

@@ -113,6 +113,7 @@ class MockConfig:
     wireless_hz: float = 50.0
     lockstep_quantum_s: float = 0.004
     lockstep_idle_repeat_s: float = 0.1
+    lockstep_port_wait_s: float = 0.25
     tick_epoch_s: float = 1.0
     base: str = "free"
     initial_pose: str = "lying"
@@ -195,6 +196,10 @@ class MockConfig:
                 raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
         if not (self.lockstep_idle_repeat_s >= 0):
             raise ValueError("lockstep_idle_repeat_s must be >= 0 (0 disables the repeat)")
+        if not (isinstance(self.lockstep_port_wait_s, int | float)
+                and 0 <= self.lockstep_port_wait_s < math.inf):
+            raise ValueError("lockstep_port_wait_s must be a finite number of s >= 0 (0: a full "
+                             f"IMU port drops the frame), got {self.lockstep_port_wait_s!r}")
         if not 0 <= self.max_time_offset_s < self.tick_epoch_s:
             raise ValueError("max_time_offset_s must be in [0, tick_epoch_s)")
         for name, rate in (("lowstate_hz", self.lowstate_hz), ("wireless_hz", self.wireless_hz)):

@@ -3,17 +3,26 @@
 A :class:`FootImuChannel` turns the simulated foot motion into samples
 (:class:`sim.sensors.FootImuModel`: mounting rotation, noise, bias, dropouts, the time offset
 in the stamps) and each sample into one 57-byte frame (:func:`hw.imu_protocol.encode_frame`).
-A :class:`PortWriter` owns one pty (:class:`hw.pty_link.PtyPair`) and writes whole frames
-without ever blocking: a real UART keeps transmitting whether anyone listens or not, so when
-the pty buffer is full (no reader, or a reader that stalls) the frame is lost and counted,
-and the simulation never waits for a reader.
+A :class:`PortWriter` owns one pty (:class:`hw.pty_link.PtyPair`) and writes whole frames.
+In realtime it never blocks: a real UART keeps transmitting whether anyone listens or not, so
+when the pty buffer is full (no reader, or a reader that stalls) the frame is lost and
+counted, and the simulation never waits for a reader. In lockstep (``wait_s`` > 0) a full port
+holds the simulation back until it takes the frame: there the simulation runs as fast as its
+controller asks, with no baud rate to pace the frames, and how many a pty can hold then
+depends on the host's load, not on the robot (two mock calibrations sharing two cores lost a
+third of their frames so, the writes refused while the reader found nothing waiting, and
+the lifted legs' IMUs fell silent for over a second). A port that stays
+full for ``wait_s`` (nobody reads it) drops that frame and the ones after it without waiting,
+until a write gets through again.
 """
 
 from __future__ import annotations
 
 import math
 import os
+import select
 import threading
+import time
 
 import numpy as np
 
@@ -57,41 +66,64 @@ def rotation_to_quat_wxyz(r: np.ndarray) -> tuple[float, float, float, float]:
 
 
 class PortWriter:
-    """One pty serial port; writes whole frames, never blocks (see the module docstring)."""
+    """One pty serial port; writes whole frames. wait_s: how long a full port may hold a
+    write back (0: never, a full port drops the frame; see the module docstring)."""
 
-    def __init__(self) -> None:
+    def __init__(self, wait_s: float = 0.0) -> None:
+        if not (math.isfinite(wait_s) and wait_s >= 0):
+            raise ValueError(f"wait_s must be >= 0 s, got {wait_s!r}")
         self.pty = PtyPair()
         self.port_path = self.pty.port_path
+        self.wait_s = wait_s
         self._lock = threading.Lock()
+        self._stalled = False  # the last write timed out waiting: nobody reads this port
         self.bytes_written = 0
         self.writes_dropped_full = 0  # buffer full: nobody reading
         self.writes_dropped_closed = 0  # after hang_up
         self.writes_truncated = 0
+        self.writes_waited = 0  # held back by a full port, then written
+        self.wait_max_s = 0.0  # the longest such wait
 
     @property
     def closed(self) -> bool:
         return self.pty.closed
 
     def write(self, data: bytes) -> bool:
-        """Write ``data`` at once or not at all (True if written whole)."""
+        """Write ``data`` whole (True) or not at all; with ``wait_s``, waiting up to that long
+        for a full port to take it."""
         with self._lock:
             if self.pty.closed:
                 self.writes_dropped_closed += 1
                 return False
-            try:
-                n = os.write(self.pty.master_fd, data)
-            except BlockingIOError:
-                self.writes_dropped_full += 1
-                return False
-            except OSError:
-                self.writes_dropped_closed += 1
-                return False
-            self.bytes_written += n
-            if n < len(data):
-                # The rest is lost as on an overrun UART; the reader's decoder rejects the
-                # truncated frame by its CRC.
-                self.writes_truncated += 1
-                return False
+            fd, view, t0 = self.pty.master_fd, memoryview(data), None
+            while True:
+                try:
+                    n = os.write(fd, view)
+                except BlockingIOError:
+                    n = 0
+                except OSError:
+                    self.writes_dropped_closed += 1
+                    return False
+                self.bytes_written += n
+                view = view[n:]
+                if not view:
+                    break
+                now = time.monotonic()
+                t0 = now if t0 is None else t0
+                if self._stalled or now - t0 >= self.wait_s:
+                    self._stalled = self.wait_s > 0
+                    if len(view) == len(data):
+                        self.writes_dropped_full += 1
+                    else:
+                        # The rest is lost as on an overrun UART; the reader's decoder
+                        # rejects the truncated frame by its CRC.
+                        self.writes_truncated += 1
+                    return False
+                select.select([], [fd], [], self.wait_s - (now - t0))
+            self._stalled = False
+            if t0 is not None:
+                self.writes_waited += 1
+                self.wait_max_s = max(self.wait_max_s, time.monotonic() - t0)
             return True
 
     def hang_up(self) -> None:

@@ -226,13 +226,15 @@ class MockRobot:
             raise RuntimeError("MockRobot is closed")
         cfg = self.config
         try:
-            shared = PortWriter() if (cfg.imu_ports == "shared" and self.imus) else None
+            wait_s = cfg.lockstep_port_wait_s if self.lockstep else 0.0
+            shared = (PortWriter(wait_s) if (cfg.imu_ports == "shared" and self.imus)
+                      else None)
             if shared is not None:
                 self._writers.append(shared)
             for leg, imu in self.imus.items():
                 w = shared
                 if w is None:
-                    w = PortWriter()
+                    w = PortWriter(wait_s)
                     self._writers.append(w)
                 self.channels[leg] = FootImuChannel(imu, w)
             if self._use_transport:
@@ -634,7 +636,9 @@ class MockRobot:
         lowstates, wireless, late_ticks, max_lateness_s, resyncs, per-leg IMU frames."""
         wall = time.monotonic() - self._wall_start if self._wall_start else 0.0
         imu = {leg: {"samples": c.samples, "frames_written": c.frames_written,
-                     "frames_dropped": c.frames_dropped, "garbage_bytes": c.garbage_bytes}
+                     "frames_dropped": c.frames_dropped, "garbage_bytes": c.garbage_bytes,
+                     "port_writes_waited": c.writer.writes_waited,
+                     "port_wait_max_s": c.writer.wait_max_s}
                for leg, c in self.channels.items()}
         return {
             "sim_time_s": self.sim_time,
