@@ -477,6 +477,8 @@ def test_config_files_and_errors(tmp_path):
         ("floor_slope_azimuth_deg: .nan\n", "floor_slope_azimuth_deg"),
         ("floor_timeconst_s: 0.001\n", "floor_timeconst_s"),
         ("floor_timeconst_s: soft\n", "floor_timeconst_s"),
+        ("lockstep_port_wait_s: -1\n", "lockstep_port_wait_s"),
+        ("lockstep_port_wait_s: .inf\n", "lockstep_port_wait_s"),
         ("model_xml: no/such/go2.xml\n", "model_xml must name an MJCF file"),
         ("foot_imus: {FL: {rotation_matrix: [[1, 0, 0], [0, 1, 0], [0, 0, -1]]}}\n",
          "proper rotation"),
@@ -492,6 +494,23 @@ def test_config_files_and_errors(tmp_path):
     # shared port fits at 4 x 200 Hz
     y.write_text("imu_ports: shared\nfoot_imus: {all: {rate_hz: 200}}\n")
     assert load_config(y).imu_ports == "shared"
+
+
+def test_realtime_draws_no_negative_time_offset_and_so_no_lowstate_delay():
+    """A negative offset in realtime delays every lowstate by as much (the loop's latency):
+    the drawn ones are made non-negative there, the same magnitudes as lockstep's; one given
+    in the config is kept."""
+    def offsets(**kw):
+        return {leg: r.sensor.time_offset
+                for leg, r in MockConfig(listen=[], seed=101, **kw).resolve_imus().items()}
+
+    lock, real = offsets(clock="lockstep"), offsets(clock="realtime")
+    assert min(lock.values()) < -0.05  # seed 101 draws FR -77 ms
+    assert real == {leg: abs(t) for leg, t in lock.items()}
+    with MockRobot(MockConfig(listen=[], clock="realtime", seed=101), transport=False) as robot:
+        assert robot.output_delay_s == 0.0
+    given = offsets(clock="realtime", foot_imus={"FL": {"time_offset_s": -0.02}})
+    assert given["FL"] == -0.02 and given["FR"] == real["FR"]
 
 
 def test_a_soft_floor_lets_the_lying_robot_sink_in():

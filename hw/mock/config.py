@@ -7,8 +7,9 @@ otherwise (``_deg``, ``_ppm``, ``_hz``). See ``docs/mock-robot.md`` for the refe
 Foot IMUs: ``foot_imus`` maps a leg (FL, FR, RL, RR) or ``"all"`` to a
 :class:`FootImuMockConfig` dict; ``"all"`` is applied first, then the leg's own entry.
 Fields left ``None`` are drawn from the seed (:meth:`MockConfig.resolve_imus`): a uniformly
-random mounting rotation, a time offset uniform in ``[-max_time_offset_s, max_time_offset_s]``,
-a random sampling phase, the device clock's start value.
+random mounting rotation, a time offset uniform in ``[-max_time_offset_s, max_time_offset_s]``
+(in realtime its magnitude: :meth:`MockConfig.resolve_imus`), a random sampling phase, the
+device clock's start value.
 """
 
 from __future__ import annotations
@@ -272,7 +273,14 @@ class MockConfig:
         return out
 
     def resolve_imus(self) -> dict[str, ResolvedImu]:
-        """Enabled foot IMUs, every ``None`` drawn from ``seed`` (same seed, same IMUs)."""
+        """Enabled foot IMUs, every ``None`` drawn from ``seed`` (same seed, same IMUs).
+
+        In realtime a drawn time offset is made non-negative (its magnitude): an IMU that
+        reports a motion before the encoders do is realised by delaying every lowstate
+        (``MockRobot.output_delay_s``, ``docs/mock-robot.md``), which the control loop sees as
+        latency. Seed 101's -77 ms tipped the tripod over as it shifted its weight off RL
+        (lockstep, with no such delay: every leg held). A negative offset given in the config
+        is kept."""
         entries = self.imu_entries()
         seeds = np.random.SeedSequence(int(self.seed)).spawn(len(LEGS))
         out: dict[str, ResolvedImu] = {}
@@ -301,6 +309,8 @@ class MockConfig:
                 over["rotation"] = np.asarray(e.rotation_matrix, dtype=float)
             if e.time_offset_s is not None:
                 over["time_offset"] = float(e.time_offset_s)
+            elif self.clock == "realtime":
+                over["time_offset"] = abs(base.time_offset)
             if e.gyro_noise_density is not None:
                 over["gyro_noise_density"] = float(e.gyro_noise_density)
             over.update(
