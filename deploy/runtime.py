@@ -450,6 +450,17 @@ class DeployRunner:
                 got.append(s)
         return got
 
+    def _wait_solver(self) -> None:
+        """Lockstep: a tick in SOLVE first waits for the solver (up to the session's
+        ``solve_timeout_s``), as the simulation waits for every tick. Else how many ticks the
+        robot stands in SOLVE, and so where the next leg starts from, would depend on how fast
+        this host solves: two runs of the same seed gave the same first leg and different
+        later ones."""
+        if self.session.state is not State.SOLVE or not self._jobs or self._jobs[-1].done():
+            return
+        self._say(f"  SOLVE {self.session.leg}: solving (the lockstep robot waits)")
+        self._jobs[-1].join(self.cfg.session.solve_timeout_s)
+
     def _watch_imu(self) -> None:
         """A silent foot IMU of the leg being lifted is an error (port open, no frames: wrong
         port, wrong protocol or baud, receiver off), found before SOLVE has nothing to use.
@@ -590,6 +601,7 @@ class DeployRunner:
                     ticker.wait()
             elif lockstep:
                 samples = self._wait_lockstep(expected)
+                self._wait_solver()
                 deadline = start = time.monotonic_ns()
             else:
                 _k, deadline, start = ticker.wait()

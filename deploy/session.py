@@ -19,7 +19,8 @@ States and their exits (every transition is reported with its cause)::
               -> LOWER when it ends; a failed foot IMU aborts -> LOWER (no result).
     LOWER     the schedule's lower phase, then ``lower_settle_s`` of the policy alone (none by
               default). -> STAND.
-    SOLVE     stand hold while the solver runs on a worker (never in the loop). -> REPORT.
+    SOLVE     stand hold while the solver runs on a worker (never in the loop; in lockstep the
+              runtime waits for it before the next tick). -> REPORT.
               Timeout ``solve_timeout_s`` -> REPORT with the error.
     REPORT    the outcome is published (once). -> TRIPOD(next leg), or STAND (joystick mode),
               or SIT. -> REPLANT instead of TRIPOD once a leg has been lifted since the last

@@ -226,6 +226,38 @@ def test_lockstep_mock_waits_for_a_slow_imu_reader_and_drops_no_frame(policies, 
     assert len(seq) > 2000 and np.all(np.diff(seq) % 65536 == 1)
 
 
+def test_lockstep_runs_do_not_depend_on_how_fast_the_host_solves(policies, tmp_path,
+                                                                  monkeypatch):
+    """The same seed twice, the second with a solver 1 s slower: the robot waits for it, so
+    the second leg starts from the same state and both legs come out bit for bit the same."""
+    import time
+
+    import deploy.solve as solve_mod
+
+    def run(out):
+        robot = start_mock(seed=13)
+        try:
+            result = deploy(robot, policies["hold"], ["FL", "RR"], out)
+        finally:
+            robot.stop()
+        assert [o.ok for o in result.outcomes] == [True, True]
+        return {leg: json.loads((out / f"{leg}.json").read_text())
+                for leg in ("FL", "RR")}
+
+    fast = run(tmp_path / "fast")
+    solve_leg = solve_mod.solve_leg
+
+    def slow_solve_leg(*a, **k):
+        time.sleep(1.0)
+        return solve_leg(*a, **k)
+
+    monkeypatch.setattr(solve_mod, "solve_leg", slow_solve_leg)
+    slow = run(tmp_path / "slow")
+    for leg in ("FL", "RR"):
+        for key in ("rotation_matrix", "time_offset_s"):
+            assert slow[leg][key] == fast[leg][key], (leg, key)
+
+
 def test_l2_b_mid_motion_damps_within_one_tick(policies, tmp_path):
     robot = start_mock(seed=5)
     try:
