@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from collections.abc import Iterator
@@ -16,6 +17,8 @@ def atomic_output(path: str | os.PathLike) -> Iterator[BinaryIO]:
     ``with`` block ends without an exception (temp file in the same folder, fsync, rename);
     otherwise the temp file is removed and any old ``path`` is left as it was."""
     path = Path(path)
+    if path.is_dir():  # else the rename fails at the end, naming the temp file
+        raise IsADirectoryError(errno.EISDIR, "is a directory", str(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
@@ -49,3 +52,11 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> Path:
 def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
     """Text version of :func:`write_bytes_atomic` (UTF-8)."""
     return write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def os_error_line(e: OSError) -> str:
+    """One line for a command's error output: the file and why (``IsADirectoryError`` on an
+    output path, ``PermissionError`` on an input, ...), without the traceback."""
+    why = e.strerror or str(e)
+    name = e.filename2 if e.filename2 is not None else e.filename  # a rename's: its target
+    return f"{name}: {why}" if name is not None else why

@@ -78,8 +78,10 @@ MIN_ROWS = 50
 """Fewest samples a file may hold (after dropping duplicate rows)."""
 DEFAULT_DIFF_WINDOW_S = 0.02
 """Width of the differentiation window, s (+-10 ms around each sample)."""
-MAX_MEDIAN_STEP_S = 1.0
-"""A median stamp step above this means the ``t`` column is not in seconds."""
+MAX_MEDIAN_STEP_S = 0.05
+"""A median stamp step above this (slower than 20 Hz) means the ``t`` column is not in
+seconds: milliseconds at 1 kHz step by 1.0, and were read as seconds, the offset 1000 times too
+large; no log that slow could be calibrated to milliseconds anyway."""
 BASE_GYRO_COLUMNS = ("base_wx", "base_wy", "base_wz")
 BASE_QUAT_COLUMNS = ("base_qw", "base_qx", "base_qy", "base_qz")
 IMU_GYRO_COLUMNS = ("wx", "wy", "wz")
@@ -143,7 +145,10 @@ class _Table:
             raise self.error("file not found")
         if not p.is_file():
             raise self.error("not a regular file")
-        raw = p.read_bytes()
+        try:
+            raw = p.read_bytes()
+        except OSError as e:
+            raise self.error(f"cannot read it ({e.strerror or e})") from None
         if not raw or raw.isspace():
             raise self.error("file is empty")
         try:
@@ -151,14 +156,32 @@ class _Table:
         except UnicodeDecodeError as exc:
             raise self.error(f"not UTF-8 text (byte {exc.start})") from None
         lines = text.splitlines()
-        # Fast path for plain logger output (no '#', no empty line, a constant field count,
-        # checked with one C-speed count over the text); anything else is filtered and checked
-        # line by line, which also finds the offending line for the message.
-        plain = "#" not in text and "" not in lines
+        # Fast path for plain logger output (no '#', no empty line): every line is content.
+        # Anything else, or a whitespace-only line found by the field counts, is filtered line
+        # by line. Every row's field count is checked either way (np.loadtxt's usecols would
+        # read a row with a field too many and another one too few, shifted).
+        plain = "#" not in text and "" not in lines and not lines[0].isspace()
         content = np.arange(len(lines)) if plain else self._content(lines)
         if content.size == 0:
             raise self.error("file is empty (only blank or comment lines)")
-        h = int(content[0])
+        n_fields = self._read_header(lines, int(content[0]))
+        counts = self._field_counts(lines, content)
+        if plain and np.any(counts != n_fields - 1):
+            content = self._content(lines)
+            if int(content[0]) != self.header_line - 1:  # the header was a blank line
+                n_fields = self._read_header(lines, int(content[0]))
+            counts = self._field_counts(lines, content)
+        self.lines = [lines[i] for i in content[1:]]
+        self.line_numbers = content[1:] + 1
+        bad = np.flatnonzero(counts != n_fields - 1)
+        if bad.size:
+            i = bad[0]
+            raise self.error(
+                f"line {self.line_numbers[i]}: {counts[i] + 1} fields, the header has {n_fields}"
+            )
+
+    def _read_header(self, lines: list[str], h: int) -> int:
+        """Read line ``h`` (0-based) as the header row; its field count."""
         self.header_line = h + 1
         self.columns = [c.strip() for c in lines[h].split(",")]
         if all(_is_number(c) for c in self.columns if c):
@@ -171,23 +194,13 @@ class _Table:
         if dups:
             raise self.error(f"line {h + 1}: duplicate column name(s) {', '.join(dups)}")
         self.index = {c: i for i, c in enumerate(self.columns) if c}
-        n_fields = len(self.columns)
-        if plain and text.count(",") != (n_fields - 1) * len(lines):
-            plain = False  # a whitespace-only line or a row with a wrong field count
-            content = self._content(lines)
-        self.lines = lines[h + 1 :] if plain else [lines[i] for i in content[1:]]
-        self.line_numbers = content[1:] + 1
-        if not plain:
-            counts = np.fromiter(
-                (s.count(",") for s in self.lines), dtype=np.int64, count=len(self.lines)
-            )
-            bad = np.flatnonzero(counts != n_fields - 1)
-            if bad.size:
-                i = bad[0]
-                raise self.error(
-                    f"line {self.line_numbers[i]}: {counts[i] + 1} fields, "
-                    f"the header has {n_fields}"
-                )
+        return len(self.columns)
+
+    @staticmethod
+    def _field_counts(lines: list[str], content: np.ndarray) -> np.ndarray:
+        """Commas in each content line after the header."""
+        rows = content[1:]
+        return np.fromiter((lines[i].count(",") for i in rows), dtype=np.int64, count=rows.size)
 
     @staticmethod
     def _content(lines: list[str]) -> np.ndarray:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calib.atomic import write_text_atomic
+from calib.atomic import os_error_line, write_text_atomic
 from calib.csvio import CalibInputError, read_encoders_csv, read_imu_csv
 from calib.joints import LEGS, check_leg
 
@@ -88,6 +88,8 @@ def cmd_solve(args) -> int:
     from calib.pipeline import CalibrationRefused, calibrate_logs
     from calib.result import format_report
 
+    if Path(args.out).is_dir():  # found before the solve, not after
+        raise _Fail(f"--out {args.out}: is a directory")
     try:
         enc = read_encoders_csv(args.encoders, args.leg)
         imu = read_imu_csv(args.imu)
@@ -381,6 +383,9 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except _Fail as e:
         print(f"a2i-calib {args.command}: error: {e}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as e:  # an output that cannot be written, an input that cannot be read
+        print(f"a2i-calib {args.command}: error: {os_error_line(e)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print(f"a2i-calib {args.command}: interrupted", file=sys.stderr)

@@ -26,7 +26,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -169,6 +169,23 @@ def rss_bytes() -> int:
         return 0
 
 
+def _check_imu_ports(imus: Sequence[ImuPort]) -> None:
+    """One port per leg, and IMUs sharing a port told apart by their node ids: else one leg's
+    ring would hold two IMUs' samples, interleaved."""
+    legs = [i.leg for i in imus]
+    twice = sorted({g for g in legs if legs.count(g) > 1})
+    if twice:
+        raise DeployError(f"--imu gives {', '.join(twice)} more than one port")
+    by_port: dict[str, list[ImuPort]] = {}
+    for imu in imus:
+        by_port.setdefault(imu.port, []).append(imu)
+    for port, shared in by_port.items():
+        nodes = {i.node for i in shared if i.node is not None}
+        if len(shared) > 1 and len(nodes) != len(shared):
+            raise DeployError(f"port {port} is shared by {len(shared)} IMUs: give every one "
+                              "its own node id, e.g. --imu FL=/dev/ttyUSB0#1")
+
+
 class DeployRunner:
     """One run of the on-board program (see the module docstring).
 
@@ -189,6 +206,10 @@ class DeployRunner:
         for leg in config.legs:
             check_leg(leg)
         imu_legs = {i.leg for i in config.imus}
+        _check_imu_ports(config.imus)
+        if config.joystick and not imu_legs:
+            raise DeployError("no foot IMU: give every leg the remote may calibrate its port, "
+                              "e.g. --imu FL=/dev/ttyUSB0")
         missing = [leg for leg in config.legs if leg not in imu_legs]
         if missing:
             raise DeployError(f"no foot IMU port for {', '.join(missing)}: give "
@@ -240,6 +261,8 @@ class DeployRunner:
         self.ticks = 0
         self._next_progress = 0.0
         self._jobs: list[SolveJob] = []
+        self._waited_job: SolveJob | None = None  # lockstep: the job SOLVE last waited for
+        self._wait_deadline = 0.0
         self._worker: SolveWorker | None = None
         # the lifted leg's IMU: (leg, frames recorded, ticks without a new one, monotonic s of
         # the last new one)
@@ -312,9 +335,6 @@ class DeployRunner:
             by_port.setdefault(imu.port, []).append(imu)
         for port, imus in by_port.items():
             nodes = {i.node: i.leg for i in imus if i.node is not None}
-            if nodes and len(nodes) != len(imus):
-                raise DeployError(f"port {port} is shared by {len(imus)} IMUs: give every one "
-                                  "its node id, e.g. --imu FL=/dev/ttyUSB0#1")
             legs = [i.leg for i in imus]
             reader = SerialImuReader(
                 port, baudrate=c.imu_baud, protocol=c.imu_protocol,
@@ -458,8 +478,16 @@ class DeployRunner:
         later ones."""
         if self.session.state is not State.SOLVE or not self._jobs or self._jobs[-1].done():
             return
-        self._say(f"  SOLVE {self.session.leg}: solving (the lockstep robot waits)")
-        self._jobs[-1].join(self.cfg.session.solve_timeout_s)
+        job = self._jobs[-1]
+        if self._waited_job is not job:  # the wait is solve_timeout_s of wall time per job
+            self._waited_job = job
+            self._wait_deadline = time.monotonic() + self.cfg.session.solve_timeout_s
+            self._say(f"  SOLVE {self.session.leg}: solving (the lockstep robot waits)")
+        while not job.done() and not self._stop.is_set():
+            left = self._wait_deadline - time.monotonic()
+            if left <= 0:
+                break
+            job.join(min(left, 0.1))
 
     def _watch_imu(self) -> None:
         """A silent foot IMU of the leg being lifted is an error (port open, no frames: wrong
@@ -558,6 +586,10 @@ class DeployRunner:
         finally:
             for job in self._jobs:
                 job.join(timeout=60.0)
+            for o in self.session.adopt_late_results():
+                self._say(f"  {o.leg}: its solve finished after the session had stopped "
+                          f"waiting for it; {'accepted' if o.ok else 'refused'}: its result "
+                          "stands")
             if self._worker is not None:
                 self._worker.close()
             self.close()

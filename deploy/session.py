@@ -184,6 +184,14 @@ class LegOutcome:
     error: str | None = None
     payload: object = None  # the solve job's result object (deploy.solve.SolveOutcome)
     retried: str | None = None  # why the first lift was called off, if it was tried again
+    job: object = field(default=None, repr=False)  # its solve job, once started
+
+
+def _read_job(o: LegOutcome) -> None:
+    out = o.job.outcome()
+    o.payload = out
+    o.ok = bool(getattr(out, "accepted", False))
+    o.error = getattr(out, "error", None)
 
 
 class Session:
@@ -215,7 +223,9 @@ class Session:
         self.joystick = bool(joystick)
         self.available_legs = None if available_legs is None else set(available_legs)
         if self.policies is not None:
-            self.available_legs = set(self.policies) & (self.available_legs or set(self.policies))
+            # None: every leg a policy serves; an empty set (no foot IMU) is none of them
+            given = set(self.policies) if self.available_legs is None else self.available_legs
+            self.available_legs = set(self.policies) & given
             missing = [g for g in self.queue if g not in self.policies]
             if missing:
                 raise ValueError(f"no policy for {', '.join(missing)}")
@@ -302,6 +312,12 @@ class Session:
             self.fault = cause
         if self._current is not None and not self._current.ok and self._current.error is None:
             self._current.error = f"aborted: {cause}"
+        # A combo pressed before the damp, or a called-off lift's second try, is no order
+        # after it: L2+A must only stand the robot up.
+        self._requested = None
+        if self._retry is not None:
+            o, self._retry = self._retry, None
+            o.error, o.retried = f"{o.retried}; not lifted again: {cause}", None
         self._go(State.DAMP, cause)
 
     # ------------------------------------------------------------------ the tick
@@ -695,6 +711,8 @@ class Session:
     def _start_solve(self) -> None:
         leg, self._pending_solve = self._pending_solve, None
         self._job = self.start_solve(leg, (self._window_start, self._window_end))
+        if self._current is not None:
+            self._current.job = self._job
         self._go(State.SOLVE, f"solving {leg} on a worker")
 
     def _hold(self) -> Command:
@@ -705,15 +723,22 @@ class Session:
         cmd = self._hold()
         job = self._job
         if job.done():
-            out = job.outcome()
-            self._current.payload = out
-            self._current.ok = bool(getattr(out, "accepted", False))
-            self._current.error = getattr(out, "error", None)
+            _read_job(self._current)
             self._go(State.REPORT, "solver finished")
         elif self.t_state > self.cfg.solve_timeout_s:
             self._current.error = f"solver timed out after {self.cfg.solve_timeout_s:.0f} s"
             self._go(State.REPORT, "solver timeout")
         return cmd
+
+    def adopt_late_results(self) -> list[LegOutcome]:
+        """The legs whose solve finished after the session stopped waiting for it (a damp or a
+        stop during SOLVE, the solver's timeout): the job has written its files, so the leg's
+        outcome is the job's, not the abort's. Call once the jobs are joined."""
+        late = [o for o in self.outcomes
+                if o.job is not None and o.payload is None and o.job.done()]
+        for o in late:
+            _read_job(o)
+        return late
 
     def _report(self, inp: TickInput, combos) -> Command:
         cmd = self._hold()

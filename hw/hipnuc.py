@@ -127,8 +127,9 @@ class HipnucDecoder(StreamDecoder):
     ) -> None:
         if not 0 <= node_id <= 0xFF:
             raise ValueError(f"node_id {node_id} outside u8")
-        if rate_hz is not None and not 0 < rate_hz <= 1000:
-            raise ValueError(f"rate_hz {rate_hz} outside (0, 1000]")
+        if rate_hz is not None and not 0 < rate_hz <= 600:
+            raise ValueError(f"rate_hz {rate_hz} outside (0, 600]: 1 ms stamps cannot "
+                             "tell one frame period from two above that")
         self.node_id = node_id
         self.node_id_from_packet = node_id_from_packet
         self.rate_hz = rate_hz
@@ -146,6 +147,10 @@ class HipnucDecoder(StreamDecoder):
             self._seq_anchor[node] = (ts_ms, 0)
             return 0
         dt_ms = (ts_ms - anchor[0]) % (1 << 32)
+        if dt_ms >= 1 << 31:  # device clock went backwards: the IMU rebooted
+            self._seq.reboot(node)
+            self._seq_anchor[node] = (ts_ms, anchor[1])
+            return anchor[1]
         seq = (anchor[1] + round(dt_ms * self.rate_hz / 1000.0)) % SEQ_MOD
         self._seq_anchor[node] = (ts_ms, seq)
         return seq

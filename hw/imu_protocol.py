@@ -121,14 +121,21 @@ class SeqTracker:
     """Per-node missed-frame counting from a wrapping sequence number.
 
     A forward step of k (mod ``modulus``) means k - 1 frames were missed. A step
-    of 0 (duplicate) or a backward step (more than half the range, e.g. the node
-    rebooted) counts as a restart, never as ~65535 missed frames.
+    of 0 (duplicate) or a backward step (more than half the range) counts as a
+    restart, never as ~65535 missed frames; so does :meth:`reboot`, which the
+    decoders call when a node's device clock goes backwards (a reboot restarts seq
+    at 0, which from past half the range reads as a forward step).
     """
 
     modulus: int = SEQ_MOD
     gaps: dict[int, int] = field(default_factory=dict)
     restarts: int = 0
     _last: dict[int, int] = field(default_factory=dict)
+
+    def reboot(self, node: int) -> None:
+        """The node's device clock went backwards: new seq baseline, no gap counted."""
+        if self._last.pop(node, None) is not None:
+            self.restarts += 1
 
     def update(self, node: int, seq: int) -> None:
         last = self._last.get(node)
@@ -169,6 +176,7 @@ class StreamDecoder:
         self.bytes_fed = 0
         self.bytes_consumed = 0  # bytes of CRC-valid packets, decoded or skipped
         self._seq = SeqTracker()
+        self._last_t: dict[int, int] = {}  # node -> its last device time (A2I frames)
 
     @property
     def seq_gaps(self) -> dict[int, int]:
@@ -276,6 +284,10 @@ class FrameDecoder(StreamDecoder):
                     self.invalid_frames += 1
                     continue
                 node, seq = vals[0], vals[1]
+                last_t = self._last_t.get(node)
+                self._last_t[node] = vals[2]
+                if last_t is not None and vals[2] < last_t:
+                    self._seq.reboot(node)
                 self._seq.update(node, seq)
                 out.append(ImuFrame(node, seq, vals[2], vals[3:6], vals[6:9], vals[9:13]))
         finally:

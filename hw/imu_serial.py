@@ -256,8 +256,9 @@ class SerialImuReader:
                         self._unknown_node += 1
                     continue
             clock = self._clocks.get(fr.node_id)
-            if clock is None:
-                clock = self._clocks[fr.node_id] = ClockMapper(wrap_period_ns=wrap_ns)
+            if clock is None:  # under the lock: stats() walks the dict from another thread
+                with self._lock:
+                    clock = self._clocks[fr.node_id] = ClockMapper(wrap_period_ns=wrap_ns)
             t_dev = fr.t_device_us * 1000
             t_mapped = clock.update(t_dev, t_host)
             sample = ImuSample(

@@ -341,6 +341,9 @@ def _number(lo: float, hi: float, what: str):
     return parse
 
 
+_MINUTES = _number(0.0, math.inf, "must be a number of minutes >= 0")
+
+
 def _tip_limits(text: str):
     """argparse type: deploy's tip guard limits, "LIFT[,HOLD]" deg ("0": off)."""
     from deploy.tip_guard import TipLimits
@@ -378,7 +381,8 @@ def _eval(a) -> int:
 
     evaluate_policy(a.onnx, episodes=a.episodes, legs=a.legs, seed=a.seed,
                     write=not a.no_write, results_path=a.results, nominal=a.nominal,
-                    dr_off=a.dr_off, randomisation=a.randomisation, dr_set=dict(a.dr))
+                    dr_off=a.dr_off, randomisation=a.randomisation, dr_set=dict(a.dr),
+                    log=lambda s: print(s, flush=True))
     return 0
 
 
@@ -557,14 +561,14 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="a2i-train", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("tripod", help="train the tripod calibration-action policy (PPO)")
-    t.add_argument("--iterations", type=int, default=600)
-    t.add_argument("--total-iterations", type=int, default=None,
+    t.add_argument("--iterations", type=_count, default=600)
+    t.add_argument("--total-iterations", type=_positive, default=None,
                    help="planned total (sets where phase 2 starts); default: this run's end")
     t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--num-envs", type=int, default=None)
-    t.add_argument("--plans-per-leg", type=int, default=None)
-    t.add_argument("--steps-per-env", type=int, default=None)
-    t.add_argument("--save-interval", type=int, default=None)
+    t.add_argument("--num-envs", type=_positive, default=None)
+    t.add_argument("--plans-per-leg", type=_positive, default=None)
+    t.add_argument("--steps-per-env", type=_positive, default=None)
+    t.add_argument("--save-interval", type=_positive, default=None)
     t.add_argument("--entropy-coef", type=float, default=None, help="PPO entropy bonus")
     t.add_argument("--lift-leg-weights", type=_weights, default=None, metavar="FL,FR,RL,RR",
                    help="how often each leg is lifted, e.g. 3,3,1,1 (default 2,2,1,1)")
@@ -594,7 +598,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--device", default="cpu",
                    help="where the networks and PPO's update run: cpu (default) or cuda on a "
                         "machine with a GPU (the simulation stays on the CPU's threads)")
-    t.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this")
+    t.add_argument("--max-minutes", type=_MINUTES, default=None,
+                   help="stop (and save) after this")
     t.add_argument("--model-file", default=None, help="compiled training model (.mjb)")
     t.add_argument("--plan-pool", default=None, help="precomputed excitation plan pool (.npz)")
     t.add_argument("--leg-dynamics", default=None,
@@ -662,7 +667,8 @@ def main(argv: list[str] | None = None) -> int:
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--threads", type=_positive, default=None,
                    help="simulation and update threads (default: all CPUs)")
-    d.add_argument("--max-minutes", type=float, default=None, help="stop (and save) after this")
+    d.add_argument("--max-minutes", type=_MINUTES, default=None,
+                   help="stop (and save) after this")
     d.add_argument("--resume", default=None, metavar="CKPT", help="a distillation checkpoint")
     d.add_argument("--run-dir", default=None)
     d.add_argument("--export", default=None, help="after training, export to this path stem")
@@ -774,7 +780,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="the .json a2i-train transfer writes beside its page")
     k = sub.add_parser("pack", help="compiled model + plan pool for a remote training machine")
     k.add_argument("outdir")
-    k.add_argument("--plans-per-leg", type=int, default=8)
+    k.add_argument("--plans-per-leg", type=_positive, default=8)
     k.add_argument("--seed", type=int, default=1)
     a = p.parse_args(argv)
     # Input files named on the command line must exist: say so in one line, exit 2.

@@ -27,7 +27,7 @@ import numpy as np
 
 from calib.atomic import write_text_atomic
 from calib.excitation import base_to_foot, covariance_kappa, foot_omega
-from calib.joints import MODEL_LEGS, sdk_to_model
+from calib.joints import MODEL_LEGS, model_to_sdk, sdk_to_model
 from deploy.lift_schedule import PHASES, LiftSchedule
 from policy_train.config import RANDOMISATIONS, DRConfig, TrainConfig
 from policy_train.env import PlanPool, TripodEnv
@@ -124,7 +124,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
                                  randomisation=randomisation, dr_set=dr_set)
     sched = LiftSchedule.from_metadata(meta["lift_schedule"])
     N = env.N
-    total = float(sched.total(legs[0]))
+    total = max(float(sched.total(g)) for g in legs)  # a leg's shift may be its own
     n_steps = int(np.ceil((total + 0.5) / env.dt))
     alive = np.ones(N, dtype=bool)
     touched_other = np.zeros(N, dtype=bool)
@@ -143,7 +143,11 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     weak = env.kp_s * env.strength < WEAK_STIFFNESS
     obs = env.observations()["policy"]
     name_in = sess.get_inputs()[0].name
-    for _ in range(n_steps):
+    log(f"eval: {N} episodes ({', '.join(legs)}), {total + 0.5:.1f} s each")
+    for k in range(n_steps):
+        if k and k % max(1, n_steps // 10) == 0:
+            log(f"  {k * env.dt:.1f}/{n_steps * env.dt:.1f} s simulated, "
+                f"{time.time() - t0:.0f} s, {int(alive.sum())} standing")
         act = sess.run(None, {name_in: obs.astype(np.float32)})[0]
         before = env.phase.copy()
         ob, _, _, extras = env.step(act)
@@ -488,10 +492,17 @@ def _gains_words(meta: dict) -> str:
 def _gains_note(meta: dict) -> str:
     """Whether the joints' gains are the training's: ``a2i-train derive`` may set others."""
     env = meta.get("train_config", {}).get("env", {})
-    kp, kd = env.get("kp"), env.get("kd")
-    if kp is None or (set(meta["kp"]) == {kp} and set(meta["kd"]) == {kd}):
+    if env.get("kp") is None:
         return ""
-    return f"; trained at {kp:g} / {kd:g}"
+    # one value, or twelve in model order (a2i-train tripod --gains KP,KD/KP,KD/KP,KD)
+    trained = {k: model_to_sdk(np.broadcast_to(np.asarray(env[k], dtype=float), (12,)))
+               for k in ("kp", "kd")}
+    if all(np.array_equal(trained[k], np.asarray(meta[k], dtype=float)) for k in trained):
+        return ""
+    tk, td = trained["kp"], trained["kd"]
+    if not np.ptp(tk) and not np.ptp(td):
+        return f"; trained at {tk[0]:g} / {td[0]:g}"
+    return f"; trained at {_gains_words(trained)}"
 
 
 def _lift_gains_note(meta: dict) -> str:

@@ -145,9 +145,13 @@ class ResidualActor(torch.nn.Module):
         return self.mlp(x) + on * r
 
 
-def build_actor(source_onnx: str | Path, leg: str, groups: int = 1):
+def build_actor(source_onnx: str | Path, leg: str, groups: int = 1,
+                meta_json: str | Path | None = None):
     """(meta, actor, residual): the source policy's MLP under a zero residual of ``groups``
-    candidates for lifts of ``leg``, wrapped as the source's graph mirrors its legs."""
+    candidates for lifts of ``leg``, wrapped as the source's graph mirrors its legs. meta: the
+    JSON ``meta_json`` (default: the source's), whose gains and lift schedule the rollouts play
+    and the refined policy keeps: the policy the user named, when that is a derived or refined
+    one whose network is ``source_onnx``."""
     from rsl_rl.modules import MLP
 
     from policy_train.config import TrainConfig
@@ -156,6 +160,13 @@ def build_actor(source_onnx: str | Path, leg: str, groups: int = 1):
 
     start = policy_start(source_onnx)  # ValueError unless an exported (unrefined) policy
     meta = json.loads(Path(source_onnx).with_suffix(".json").read_text())
+    if meta_json is not None:
+        named = json.loads(Path(meta_json).read_text())
+        for key in ("observation", "action", "joint_order", "mirrored_legs"):
+            if named.get(key) != meta.get(key):
+                raise ValueError(f"{Path(meta_json).name}'s {key} is not its network's "
+                                 f"({Path(source_onnx).name})")
+        meta = named
     cfg = TrainConfig.from_dict(meta["train_config"])
     n_in = int(meta["observation"]["size"])
     mlp = MLP(n_in, 12, _hidden(start), "elu")
@@ -240,7 +251,7 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
     res.set_residual(np.stack([c[0] for c in candidates]), np.stack([c[1] for c in candidates]))
     res.group = torch.as_tensor(np.repeat(np.arange(C), B))
     sched = LiftSchedule.from_metadata(meta["lift_schedule"])
-    n_steps = int(np.ceil((float(sched.total(legs[0])) + 0.5) / env.dt))
+    n_steps = int(np.ceil((max(float(sched.total(g)) for g in legs) + 0.5) / env.dt))
     alive = np.ones(N, dtype=bool)
     failed = np.zeros(N, dtype=bool)
     rate2, err2, nexc = np.zeros(N), np.zeros(N), np.zeros(N)
@@ -325,6 +336,9 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
     no evaluation (run ``a2i-train eval``)."""
     state_path = Path(state_path)
     start = Path(source_onnx).name
+    # its deploy settings (gains, lift schedule: a2i-train derive's) are played and kept, over
+    # whichever network it is built on
+    named_json = Path(source_onnx).with_suffix(".json")
     if resume:
         saved = json.loads(state_path.read_text())
         if saved.get("start", saved["source"]) != start:
@@ -337,7 +351,7 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
         source_onnx, state, continued = refine_start(source_onnx, cfg.leg)
     legs = _legs_of(source_onnx, cfg.leg)
     K = cfg.pairs
-    meta, actor, res = build_actor(source_onnx, cfg.leg, 2 * K + 1)
+    meta, actor, res = build_actor(source_onnx, cfg.leg, 2 * K + 1, named_json)
     theta = np.asarray(state.params, dtype=float) / cfg.scales  # in units of the perturbation
     dim = theta.size
     for _ in range(generations):
@@ -365,7 +379,7 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
             + ", ".join(f"{g} {v['rate']:.3f} rad/s {v['fails']} failed" for g, v in rows[0].items())
             + f"; |residual| {np.linalg.norm(theta):.2f} sigma, {rec['wall_s']:.0f} s")
     return export_refined(source_onnx, out_stem, np.asarray(state.params), cfg, state.history,
-                          continued)
+                          continued, named_json)
 
 
 def _legs_of(source_onnx, leg: str) -> tuple[str, ...]:
@@ -376,15 +390,17 @@ def _legs_of(source_onnx, leg: str) -> tuple[str, ...]:
 
 
 def export_refined(source_onnx, out_stem, params: np.ndarray, cfg: RefineConfig,
-                   history: list[dict], continued: dict | None = None) -> tuple[Path, Path]:
-    """Write the refined policy: ONNX (checked against torch) and the source's JSON with
+                   history: list[dict], continued: dict | None = None,
+                   meta_json: str | Path | None = None) -> tuple[Path, Path]:
+    """Write the refined policy: ONNX (checked against torch) and the JSON ``meta_json``
+    (default: the source's; :func:`build_actor`) with
     ``refined_from`` (source, commit, leg, the residual, the settings, each generation's
     score and, for a continued refinement, ``continued_from``: the refined policy it went on
     from, its generations and settings) and its evaluation cleared."""
     from deploy.policy import PolicyMeta
     from policy_train.export import git_commit, onnx_bytes
 
-    meta, actor, res = build_actor(source_onnx, cfg.leg, 1)
+    meta, actor, res = build_actor(source_onnx, cfg.leg, 1, meta_json)
     D, b = unpack(params)
     res.set_residual(D, b)
     data = onnx_bytes(actor, int(meta["observation"]["size"]))

@@ -253,9 +253,16 @@ class Backlash(Effect):
             self._active = self._pending.pop(0)
         c, i = self._active, self.indices
         q = sim.data.qpos[-NUM_MOTORS:][i]
+        dq = sim.data.qvel[-NUM_MOTORS:][i]
         err = c.q_des[i] - q
         dz = np.sign(err) * np.maximum(np.abs(err) - self.half_width, 0.0)
-        tau[i] -= c.kp[i] * (err - dz)
+        # tau comes clamped to the motor's limits: swap the clamped PD law for the clamped
+        # dead-zone one (subtracting kp * play from a saturated torque would give less than
+        # the limit while the dead-zone law is still above it); what effects before this one
+        # added is kept
+        u = c.kp[i] * err + c.kd[i] * (c.dq_des[i] - dq) + c.tau_ff[i]
+        lo, hi = sim._tau_lo[i], sim._tau_hi[i]
+        tau[i] += np.clip(u - c.kp[i] * (err - dz), lo, hi) - np.clip(u, lo, hi)
         return tau
 
     def __repr__(self) -> str:

@@ -14,7 +14,7 @@ import json
 import sys
 from pathlib import Path
 
-from calib.atomic import write_text_atomic
+from calib.atomic import os_error_line, write_text_atomic
 
 __all__ = ["main"]
 
@@ -23,6 +23,9 @@ def _diagnose(args) -> int:
     from sim2real.diagnose import DiagnoseConfig, diagnose, print_progress
     from sim2real.recording import load_recording
 
+    for out in (args.json, args.report):
+        if out and Path(out).is_dir():  # found before the diagnosis, not after
+            raise ValueError(f"{out}: is a directory")
     rec = load_recording(args.recording, mount=args.mount)
     d = diagnose(rec, DiagnoseConfig(window=args.window,
                                      progress=None if args.quiet else print_progress))
@@ -136,6 +139,9 @@ def main(argv: list[str] | None = None) -> int:
         return _synth(args)
     except ValueError as exc:
         print(f"a2i-sim2real: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # an output that cannot be written, an input that cannot be read
+        print(f"a2i-sim2real: error: {os_error_line(exc)}", file=sys.stderr)
         return 2
 
 

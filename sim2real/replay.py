@@ -46,8 +46,12 @@ CONTACT_SINK = 0.002  # m: the feet's soft-contact penetration of the standing G
 
 def make_windows(rec: Recording, length: float = 0.5) -> list[tuple[int, int]]:
     """Consecutive windows ``(i0, i1)`` (sample indices, i1 exclusive) of about ``length`` s."""
-    if length <= 0:
-        raise ValueError(f"window length must be > 0 s, got {length!r}")
+    # a window holds 5 samples at least (shorter ones are dropped below), so a length under
+    # that would only cost memory: 1e-9 s asked numpy for 15 GiB of edges
+    shortest = 5 * rec.sample_period
+    if not (np.isfinite(length) and length >= shortest):
+        raise ValueError(f"window length must be at least {shortest:g} s (5 samples of the "
+                         f"recording), got {length!r}")
     edges = np.searchsorted(rec.t, np.arange(rec.t[0], rec.t[-1], length))
     edges = np.unique(np.append(edges, rec.n))
     return [(int(a), int(b)) for a, b in itertools.pairwise(edges) if b - a >= 5]

@@ -148,6 +148,20 @@ def test_solve_malformed_input_one_line_exit_2(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_solve_output_problems_one_line_exit_2(tmp_path, capsys):
+    (tmp_path / "outdir").mkdir()
+    args = ["solve", "--encoders", str(tmp_path / "e.csv"), "--imu", str(tmp_path / "i.csv"),
+            "--leg", "FL", "--out"]
+    # found before the inputs are even read
+    assert main([*args, str(tmp_path / "outdir")]) == 2
+    assert capsys.readouterr().err.strip() == (f"a2i-calib solve: error: --out {tmp_path}/outdir: "
+                                               "is a directory")
+    # an output folder that cannot be made: the OSError's one line, not a traceback
+    assert main(["plan", "--leg", "FL", "--out", "/proc/nope/traj.csv"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("a2i-calib plan: error: /proc/nope")
+
+
 def test_bad_arguments_exit_2():
     r = subprocess.run(
         [sys.executable, "-m", "cli.calib", "plan", "--leg", "XX", "--out", "x"],

@@ -258,6 +258,15 @@ def test_bad_cells_name_line_and_column(tmp_path):
     rows[-1] = "0.59,0.1,0.2"  # a truncated last line (logger killed mid-write)
     p = _write_lines(tmp_path / "trunc.csv", "t,wx,wy,wz", rows)
     assert _error(read_imu_csv, p) == f"{p}: line 61: 3 fields, the header has 4"
+    # A row with a field too many and another with one too few: the comma total is right,
+    # every row is still counted (np.loadtxt would have read the first one shifted).
+    rows = _rows()
+    rows[10], rows[12] = "0.1,1,999,2,3", "0.12,1,2"
+    p = _write_lines(tmp_path / "shifted.csv", "t,wx,wy,wz", rows)
+    assert _error(read_imu_csv, p) == f"{p}: line 12: 5 fields, the header has 4"
+    # blank and whitespace-only lines are skipped, also before the header
+    p = _write_lines(tmp_path / "blank.csv", "  \nt,wx,wy,wz", _rows()[:30] + ["\t"] + _rows()[30:])
+    assert read_imu_csv(p).gyro.shape == (60, 3)
     # Text in an ignored column is fine; text in a used one of an encoder file is named.
     rows = [r + ",x" for r in _rows()]
     p = _write_lines(tmp_path / "ok.csv", "t,wx,wy,wz,label", rows)
@@ -291,7 +300,10 @@ def test_timestamp_policy(tmp_path):
     assert "not re-sorted" in msg
     p = _write_lines(tmp_path / "ns.csv", hdr, _rows(start=1.7e18, dt=2e6))
     msg = _error(read_imu_csv, p)
-    assert "column t: median step 2.0" in msg and "e+06 s is above 1 s; t must be in seconds" in msg
+    assert "column t: median step 2.0" in msg and "e+06 s is above 0.05 s; t must be in seconds" in msg
+    # milliseconds at 1 kHz step by 1.0: read as seconds they made a 0.3 ms offset 0.3 s
+    p = _write_lines(tmp_path / "ms.csv", hdr, _rows(start=5000.0, dt=1.0))
+    assert "median step 1 s is above 0.05 s" in _error(read_imu_csv, p)
 
 
 def test_row_count(tmp_path):

@@ -45,7 +45,7 @@ class FakeJob:
 class Rig:
     """A session plus a perfect robot: q follows the commanded targets one tick later."""
 
-    def __init__(self, meta_path, legs=("FL",), joystick=False, config=CFG):
+    def __init__(self, meta_path, legs=("FL",), joystick=False, config=CFG, available_legs=None):
         meta = PolicyMeta.load(meta_path)
         for leg in legs or ("FL",):
             meta.schedule.plan(leg)
@@ -55,7 +55,7 @@ class Rig:
         self.reports = []
         self.solves = []
         self.s = Session(PolicyRunner(meta), sup, 0.02, self._solve, legs=legs,
-                         joystick=joystick, config=config,
+                         joystick=joystick, config=config, available_legs=available_legs,
                          on_transition=lambda a, b, c: self.transitions.append((a, b, c)),
                          on_report=self.reports.append)
         self.q = full_pose(LIE_POSE_LEG, order="sdk")
@@ -395,6 +395,55 @@ def test_joystick_mode(meta_paths):
     assert rig.s.finished and rig.s.fault.startswith("motor 3")
     rig.tick(combos=("stand",))
     assert rig.s.state is State.DAMP  # final now
+
+
+def _stand_by_joystick(rig):
+    rig.tick(combos=("stand",))
+    rig.run_until(State.STAND)
+    for _ in range(60):
+        rig.tick()
+
+
+def test_joystick_without_foot_imus_lifts_no_leg(meta_paths):
+    rig = Rig(meta_paths[0], legs=(), joystick=True, available_legs=[])
+    _stand_by_joystick(rig)
+    rig.tick(combos=("calibrate_FL",))
+    for _ in range(20):
+        rig.tick()
+    assert rig.s.state is State.STAND and State.TRIPOD not in rig.states
+
+
+def test_a_combo_before_the_damp_is_no_order_after_it(meta_paths):
+    rig = Rig(meta_paths[0], legs=(), joystick=True)
+    rig.tick(combos=("stand",))
+    rig.run_until(State.STAND)
+    rig.tick(combos=("calibrate_FL",))  # still standing up: kept for when it stands
+    rig.tick(combos=("damp",))
+    _stand_by_joystick(rig)  # L2+A stands the robot up, and only that
+    assert rig.s.state is State.STAND and State.TRIPOD not in rig.states
+    # a called-off lift waiting for its second try: the damp ends it, and says so
+    rig.tick(combos=("calibrate_FL",))
+    _tip_in_lift(rig)
+    rig.run_until(State.REPLANT)
+    rig.tick(combos=("damp",))
+    _stand_by_joystick(rig)
+    assert rig.s.state is State.STAND and rig.states.count(State.TRIPOD) == 1
+    (fl,) = rig.s.outcomes
+    assert not fl.ok and fl.retried is None
+    assert "tipped" in fl.error and "not lifted again: operator: L2+B" in fl.error
+
+
+def test_a_solve_that_ends_after_a_stop_keeps_its_result(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL",))
+    rig.run_until(State.SOLVE)
+    rig.tick(combos=("stop",))  # Ctrl-C while the worker solves: it writes the file all the same
+    (fl,) = rig.s.outcomes
+    assert rig.s.state is State.DAMP and fl.error == "aborted: operator: stop (Ctrl-C)"
+    late = []
+    for _ in range(5):  # the run joins its jobs, then takes their outcomes
+        late += rig.s.adopt_late_results()
+    assert late == [fl] and fl.ok and fl.error is None and fl.payload is not None
+    assert rig.s.adopt_late_results() == []
 
 
 def test_adapt_schedule_adds_what_the_legs_lag_shows_from_its_fit_on(tmp_path):

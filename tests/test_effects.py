@@ -83,6 +83,23 @@ def test_viscous_friction_and_armature_slow_a_step_response():
     assert np.abs(d1[:, 5] - d0[:, 5]).max() < 1e-3
 
 
+def test_backlash_on_a_saturated_joint_keeps_the_motor_at_its_limit():
+    import types
+
+    from sim.effects import MotorCommand
+
+    b = Backlash(0.02)
+    kp, lim = np.full(12, 60.0), np.full(12, 23.7)
+    b.on_command(MotorCommand(np.ones(12), np.zeros(12), kp, np.zeros(12), np.zeros(12)), None)
+    sim = types.SimpleNamespace(data=types.SimpleNamespace(time=0.0, qpos=np.zeros(19),
+                                                           qvel=np.zeros(18)),
+                                _tau_lo=-lim, _tau_hi=lim)
+    # 1 rad off: 60 N m asked, 58.8 through the play, the motor gives its 23.7 either way
+    np.testing.assert_allclose(b.on_torque(np.clip(kp * 1.0, -lim, lim), sim), lim)
+    sim.data.qpos[-12:] = 0.99  # 0.01 rad off: inside the play, no spring at all
+    np.testing.assert_allclose(b.on_torque(kp * 0.01, sim), 0.0, atol=1e-12)
+
+
 def test_backlash_and_link_mass_increase_the_gravity_sag():
     _, q0, _ = _run([], kp=10.0, kd=0.5, steps=600)
     _, q1, _ = _run([Backlash(0.03, joints=["FL_thigh"])], kp=10.0, kd=0.5, steps=600)

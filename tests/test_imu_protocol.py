@@ -358,6 +358,33 @@ def test_hipnuc_seq_from_rate_counts_missed_frames():
     assert got[2].t_device_us == 0  # the u32 ms counter wrapped
 
 
+def _still(node, seq, t_us):
+    return ImuFrame(node, seq, t_us, (0.0,) * 3, (0.0, 0.0, 9.8), (1.0, 0.0, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("last_seq", [20000, 40000, 60000])
+def test_a_reboot_is_a_restart_not_missed_frames(last_seq):
+    # A rebooted node restarts seq and its clock at 0; from past half the seq range the jump
+    # back to 0 reads as a forward step: the clock going back says which it is.
+    before = [_still(1, last_seq - 4 + k, 100_000_000 + 2500 * k) for k in range(5)]
+    after = [_still(1, k, 1000 + 2500 * k) for k in range(5)]
+    dec = FrameDecoder()
+    assert len(dec.feed(b"".join(encode_frame(f) for f in before + after))) == 10
+    assert dec.seq_gaps == {1: 0} and dec.stats()["seq_restarts"] == 1
+
+
+def test_hipnuc_reboot_is_a_restart_and_fast_rates_are_refused():
+    before = [_still(0, 0, 600_000_000 + 2500 * k) for k in range(5)]
+    after = [_still(0, 0, 2000 + 2500 * k) for k in range(5)]
+    dec = HipnucDecoder(rate_hz=400)
+    assert len(dec.feed(b"".join(encode_imu_frame(f) for f in before + after))) == 10
+    assert dec.seq_gaps == {0: 0} and dec.stats()["seq_restarts"] == 1
+    # 1 ms stamps cannot tell one frame period from two above 600 Hz (800 Hz: a gap at
+    # every other frame, none lost)
+    with pytest.raises(ValueError, match="600"):
+        HipnucDecoder(rate_hz=800)
+
+
 def test_hipnuc_rejects_bad_crc_and_length():
     good = bytearray(encode_imu_frame(make_frames(1)[0]))
     bad = bytearray(good)

@@ -39,6 +39,8 @@ def test_bad_input_exits_2_with_one_line(tmp_path):
     assert p.stderr.strip().count("\n") == 0
     p = run("--config", str(tmp_path / "missing.yaml"))
     assert p.returncode == 2 and "cannot read" in p.stderr
+    p = run("--listen", free_endpoint(), "--truth", str(tmp_path))  # a folder: not writable
+    assert p.returncode == 2 and p.stderr.strip() == f"a2i-mock: error: {tmp_path}: is a directory"
 
 
 def test_endpoint_in_use_exits_2():

@@ -484,6 +484,17 @@ def test_config_files_and_errors(tmp_path):
          "proper rotation"),
         ("[1, 2]\n", "mapping"),
         ("a: [\n", "not valid YAML"),
+        # each once a traceback (ZeroDivisionError, OverflowError, AttributeError, TypeError)
+        ("physics_hz: 0\n", "physics_hz must be a finite number > 0"),
+        ("seed: 1.5\n", "seed must be a whole number"),
+        ("seed: .inf\n", "seed must be a whole number"),
+        ("motor_temperature_c: .inf\n", "motor_temperature_c must be a whole number in 0..255"),
+        ("foot_imus: {FL: {node_id: .inf}}\n", "node_id must be a whole number in 0..255"),
+        ("foot_imus: {all: {garbage_max_bytes: .inf}}\n", "garbage_max_bytes"),
+        ("foot_imus: [FL]\n", "foot_imus must be a mapping"),
+        ("foot_imus: {FL: {rate_hz: 200}, fl: {node_id: 9}}\n", "names a leg twice"),
+        ("lockstep_idle_repeat_s: .inf\n", "lockstep_idle_repeat_s"),
+        ("lockstep_port_wait_s: 1.0e+300\n", "lockstep_port_wait_s"),
     ]:
         y.write_text(text)
         with pytest.raises(ValueError, match=words) as ei:

@@ -257,7 +257,11 @@ def test_cli_missing_inputs_exit_2_with_one_line(tmp_path):
 
     for argv in (["eval", str(tmp_path / "none.onnx")],
                  ["export", str(tmp_path / "none.pt"), "--out", str(tmp_path / "p")],
-                 ["tripod", "--resume", str(tmp_path / "none.pt"), "--iterations", "1"]):
+                 ["tripod", "--resume", str(tmp_path / "none.pt"), "--iterations", "1"],
+                 # a save interval of 0 divided by zero after the first iteration; nan minutes
+                 # meant no limit
+                 ["tripod", "--save-interval", "0"], ["tripod", "--max-minutes", "nan"],
+                 ["tripod", "--num-envs", "-4"], ["distill", "--max-minutes", "-1"]):
         with pytest.raises(SystemExit) as exc:
             main(argv)
         assert exc.value.code == 2
@@ -875,3 +879,16 @@ def test_a_fall_is_counted_in_the_phase_it_happened_in():
     assert extras["terminated"][0] and env.phase[0] != PHASES.index("excite")
     assert step_phase(before, env.phase, extras["terminated"])[0] == PHASES.index("excite")
     assert step_phase(before, env.phase, ~extras["terminated"])[0] == env.phase[0]
+
+
+def test_eval_names_the_training_gains_one_pair_or_per_joint():
+    from policy_train.evaluate import _gains_note
+
+    meta = {"kp": [29.0, 29.0, 23.0] * 4, "kd": [6.0, 6.0, 0.8] * 4,
+            "train_config": {"env": {"kp": 20.0, "kd": 0.5}}}
+    assert _gains_note(meta) == "; trained at 20 / 0.5"
+    # a2i-train tripod --gains 29,6/29,6/23,0.8: twelve values in the training's config
+    meta["train_config"]["env"] = {"kp": [29.0, 29.0, 23.0] * 4, "kd": [6.0, 6.0, 0.8] * 4}
+    assert _gains_note(meta) == ""
+    meta["kp"] = [30.0, 29.0, 23.0] * 4
+    assert _gains_note(meta) == "; trained at hip / thigh / calf kp 29 / 29 / 23, kd 6 / 6 / 0.8"

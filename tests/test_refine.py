@@ -176,3 +176,21 @@ def test_bad_refine_exits_with_one_line(extra, hint, tmp_path):
     err = [line for line in p.stderr.splitlines() if "error" in line]
     assert p.returncode == 2 and len(err) == 1 and hint in err[0], p.stderr
     assert "error: '" not in err[0] and 'error: "' not in err[0], p.stderr  # not a repr
+
+
+def test_refining_a_derived_policy_keeps_its_deploy_settings(tmp_path):
+    """v26 is v22's graph (v21's network and a residual) with a2i-train derive's settings (the
+    front lifts' 2 s shift, the tracking adapter): refined further, the rollouts play and the
+    new JSON keeps v26's, not v21's."""
+    v26 = V21.with_name("tripod_go2_v26.onnx")
+    _, json_path = refine(v26, tmp_path / "r", 0, RefineConfig(), tmp_path / "s.json",
+                          log=lambda s: None)
+    src, new = (json.loads(p.with_suffix(".json").read_text()) for p in (v26, json_path))
+    for key in ("kp", "kd", "lift_schedule"):
+        assert new[key] == src[key], key
+    assert new["refined_from"]["policy"] == V21.name
+    assert new["refined_from"]["continued_from"]["policy"] == v26.name
+    meta, _, _ = build_actor(V21, "FL", 1, v26.with_suffix(".json"))
+    assert meta["lift_schedule"]["adapt"] and meta["lift_schedule"]["shift_by_leg"]["FL"] == 2
+    with pytest.raises(ValueError, match="observation is not its network's"):
+        build_actor(V21, "FL", 1, V21.with_name("tripod_go2_v7.json"))

@@ -76,6 +76,23 @@ def test_csv_errors_are_one_line(tmp_path, short_null):
     assert main(["diagnose", str(tmp_path / "nope.csv"), "--quiet"]) == 2
 
 
+def test_outputs_and_windows_are_checked_before_the_diagnosis(tmp_path, short_null, capsys):
+    p = _write(tmp_path, short_null)
+    (tmp_path / "jdir").mkdir()
+    assert main(["diagnose", str(p), "--quiet", "--json", str(tmp_path / "jdir")]) == 2
+    assert capsys.readouterr().err.strip() == f"a2i-sim2real: error: {tmp_path / 'jdir'}: is a directory"
+    # 1e-9 s windows asked numpy for 15 GiB of edges
+    for w in ("1e-9", "nan"):
+        assert main(["diagnose", str(p), "--quiet", "--window", w]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and "window length must be at least" in err
+    with pytest.raises(ValueError, match="at least"):
+        make_windows(short_null, 0.0)
+    # an output folder that cannot be made: one line, exit 2
+    assert main(["synth", "/proc/nope/rec.csv", "--duration", "2"]) == 2
+    assert capsys.readouterr().err.strip().startswith("a2i-sim2real: error: /proc/nope")
+
+
 # ---------------------------------------------------------------------------- MCAP input
 def test_mcap_input(tmp_path, short_latency):
     p = tmp_path / "rec.mcap"

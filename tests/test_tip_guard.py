@@ -69,3 +69,17 @@ def test_bad_limits_are_refused(bad):
 def test_bad_text_is_refused(text):
     with pytest.raises(ValueError, match="tip limit"):
         TipLimits.parse(text)
+
+
+def test_a_turn_that_does_not_tilt_the_body_further_is_no_tip():
+    # RR's lift turns the shifted body (4-7 deg of tilt) by 5-6 deg without tipping it further,
+    # and holds: watched as an attitude change, 149 of Menagerie's 220 RR lifts were called off
+    # (docs/deploy.md, "Why the tilt's growth")
+    def tilted(deg, azimuth_deg):
+        a, az = math.radians(deg) / 2, math.radians(azimuth_deg)
+        return np.array([math.cos(a), math.sin(a) * math.cos(az), math.sin(a) * math.sin(az), 0])
+
+    g = TipGuard(DEFAULT_TIP_LIMITS)
+    assert g.check("lift", tilted(4.1, 90.0)) is None  # pitched 4.1 deg
+    assert g.check("lift", tilted(4.1, 10.0)) is None  # rolled 4.1 deg: turned 5.3 deg
+    assert "tipped 5.10 deg in lift" in g.check("lift", tilted(9.2, 10.0))

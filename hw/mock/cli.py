@@ -15,6 +15,7 @@ import tempfile
 import threading
 import time
 
+from calib.atomic import os_error_line
 from hw.mock.config import CLOCKS, MockConfig, load_config
 
 __all__ = ["main"]
@@ -84,6 +85,8 @@ def main(argv: list[str] | None = None) -> int:
             raise _Exit(2, str(e).splitlines()[0]) from None
         except TransportError as e:
             raise _Exit(2, str(e).splitlines()[0]) from None
+        except OSError as e:  # --truth not writable
+            raise _Exit(2, os_error_line(e)) from None
     except _Exit as e:
         print(f"a2i-mock: error: {e}", file=sys.stderr)
         return e.code

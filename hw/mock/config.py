@@ -44,6 +44,14 @@ FRAME_BITS = 57 * 10  # one A2I v1 frame on an 8N1 line (docs/imu-protocol.md)
 MAX_LINK_LOAD = 0.8  # a port is not planned above 80 % of its baud rate
 
 
+def _check_whole(name: str, v, lo: int, hi: int) -> None:
+    """ValueError (one line) unless ``v`` is a whole number in [lo, hi] (1.0 is, 1.5, inf and
+    True are not)."""
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v) \
+            or v != int(v) or not lo <= v <= hi:
+        raise ValueError(f"{name} must be a whole number in {lo}..{hi}, got {v!r}")
+
+
 @dataclass
 class FootImuMockConfig:
     """One foot IMU of the mock. ``None`` = drawn from the seed (see the module docstring).
@@ -181,6 +189,18 @@ class MockConfig:
                              f"{self.floor_slope_azimuth_deg!r}")
         if self.floor_slope_deg and self.base != "free":
             raise ValueError("a floor slope needs base: free")
+        for name in ("physics_hz", "lowstate_hz", "wireless_hz", "lockstep_quantum_s",
+                     "tick_epoch_s", "imu_baud", "resync_after_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        for name, lo, hi in (("seed", 0, 2**63 - 1), ("motor_temperature_c", 0, 255),
+                             ("imu_baud", 1, 2**31 - 1)):
+            _check_whole(name, getattr(self, name), lo, hi)
+        if not isinstance(self.foot_imus, dict):
+            kind = type(self.foot_imus).__name__  # a ValueError, as every bad config value
+            raise ValueError(  # noqa: TRY004
+                f"foot_imus must be a mapping of legs (or 'all') to settings, got {kind}")
         if not (isinstance(self.floor_timeconst_s, int | float)
                 and 2.0 / self.physics_hz <= self.floor_timeconst_s <= 0.2):
             raise ValueError(f"floor_timeconst_s must be in [2 physics steps, 0.2] s, got "
@@ -190,17 +210,15 @@ class MockConfig:
             raise ValueError(f"model_xml must name an MJCF file of the Go2, got {self.model_xml!r}")
         if self.imu_ports not in IMU_PORT_MODES:
             raise ValueError(f"imu_ports must be one of {IMU_PORT_MODES}, got {self.imu_ports!r}")
-        for name in ("physics_hz", "lowstate_hz", "wireless_hz", "lockstep_quantum_s",
-                     "tick_epoch_s", "imu_baud", "resync_after_s"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
-        if not (self.lockstep_idle_repeat_s >= 0):
-            raise ValueError("lockstep_idle_repeat_s must be >= 0 (0 disables the repeat)")
+        # waits, s: below an hour (a thread's timeout past the clock's range kills it)
+        if not (isinstance(self.lockstep_idle_repeat_s, int | float)
+                and 0 <= self.lockstep_idle_repeat_s < 3600):
+            raise ValueError("lockstep_idle_repeat_s must be in [0, 3600) s (0 disables the "
+                             f"repeat), got {self.lockstep_idle_repeat_s!r}")
         if not (isinstance(self.lockstep_port_wait_s, int | float)
-                and 0 <= self.lockstep_port_wait_s < math.inf):
-            raise ValueError("lockstep_port_wait_s must be a finite number of s >= 0 (0: a full "
-                             f"IMU port drops the frame), got {self.lockstep_port_wait_s!r}")
+                and 0 <= self.lockstep_port_wait_s < 3600):
+            raise ValueError("lockstep_port_wait_s must be in [0, 3600) s (0: a full IMU port "
+                             f"drops the frame), got {self.lockstep_port_wait_s!r}")
         if not 0 <= self.max_time_offset_s < self.tick_epoch_s:
             raise ValueError("max_time_offset_s must be in [0, tick_epoch_s)")
         for name, rate in (("lowstate_hz", self.lowstate_hz), ("wireless_hz", self.wireless_hz)):
@@ -214,8 +232,6 @@ class MockConfig:
             raise ValueError("lockstep_quantum_s must be a whole number of lowstate periods")
         if abs(self.tick_epoch_s * 1000 - round(self.tick_epoch_s * 1000)) > 1e-6:
             raise ValueError("tick_epoch_s must be a whole number of milliseconds")
-        if not 0 <= int(self.motor_temperature_c) <= 255:
-            raise ValueError("motor_temperature_c must fit a u8 (0..255)")
         for name in ("encoder_resolution", "encoder_q_noise_std", "encoder_dq_noise_std",
                      "body_gyro_noise_density", "body_accel_noise_density"):
             v = getattr(self, name)
@@ -266,6 +282,8 @@ class MockConfig:
                 raise ValueError(f"unknown key {bad[0]!r} in foot_imus.{key} "
                                  f"(known: {', '.join(sorted(known))})")
         upper = {str(k).upper() if k != "all" else k: v for k, v in self.foot_imus.items()}
+        if len(upper) != len(self.foot_imus):  # "FL" and "fl": one would be lost
+            raise ValueError(f"foot_imus names a leg twice: {', '.join(map(str, self.foot_imus))}")
         out = {}
         for leg in LEGS:
             merged = {**upper.get("all", {}), **upper.get(leg, {})}
@@ -329,11 +347,10 @@ class MockConfig:
                                  f"({sensor.time_offset} s)")
             if not 0.0 <= e.garbage_prob <= 1.0:
                 raise ValueError(f"foot_imus.{leg}.garbage_prob must be in [0, 1]")
-            if not 1 <= int(e.garbage_max_bytes) <= 4096:
-                raise ValueError(f"foot_imus.{leg}.garbage_max_bytes must be in 1..4096")
+            _check_whole(f"foot_imus.{leg}.garbage_max_bytes", e.garbage_max_bytes, 1, 4096)
+            if e.node_id is not None:
+                _check_whole(f"foot_imus.{leg}.node_id", e.node_id, 0, 255)
             node = i + 1 if e.node_id is None else int(e.node_id)
-            if not 0 <= node <= 255:
-                raise ValueError(f"foot_imus.{leg}.node_id must be a u8, got {node}")
             clock0 = (float(rng.uniform(10.0, 1000.0)) if e.clock_offset_s is None
                       else float(e.clock_offset_s))
             if not (math.isfinite(clock0) and clock0 >= 0):

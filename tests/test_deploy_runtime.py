@@ -1,0 +1,71 @@
+"""deploy.runtime without a robot: what a run refuses before it starts, and how long a lockstep
+SOLVE waits for a solver that does not finish."""
+
+import threading
+import time
+
+import pytest
+
+from deploy.lift_schedule import LiftSchedule
+from deploy.policy import PolicyMeta
+from deploy.runtime import DeployConfig, DeployError, DeployRunner, ImuPort
+from deploy.session import SessionConfig, State
+
+pytest.importorskip("onnx")
+
+
+@pytest.fixture(scope="module")
+def meta(tmp_path_factory):
+    from deploy.hold_policy import write_hold_policy
+
+    sched = LiftSchedule(shift=0.2, lift=0.2, hold=0.2, lower=0.2, periods=1)
+    return PolicyMeta.load(write_hold_policy(tmp_path_factory.mktemp("pol"), "hold",
+                                             schedule=sched))
+
+
+@pytest.mark.parametrize("imus, why", [
+    ([ImuPort("FL", "/dev/ttyUSB0"), ImuPort("FL", "/dev/ttyUSB1")],
+     "--imu gives FL more than one port"),
+    # two IMUs on one port told apart by nothing: one leg's ring would get both
+    ([ImuPort("FL", "/dev/ttyUSB0"), ImuPort("FR", "/dev/ttyUSB0")],
+     "port /dev/ttyUSB0 is shared by 2 IMUs: give every one its own node id"),
+    ([ImuPort("FL", "/dev/ttyUSB0", 1), ImuPort("FR", "/dev/ttyUSB0")], "its own node id"),
+    ([ImuPort("FL", "/dev/ttyUSB0", 1), ImuPort("FR", "/dev/ttyUSB0", 1)], "its own node id"),
+])
+def test_foot_imu_ports_that_would_mix_two_imus_are_refused(meta, imus, why):
+    with pytest.raises(DeployError, match=why):
+        DeployRunner(DeployConfig(legs=["FL"], imus=imus), meta)
+
+
+def test_joystick_mode_needs_a_foot_imu(meta):
+    # without one every combo would lift a leg whose samples go nowhere
+    with pytest.raises(DeployError, match="no foot IMU"):
+        DeployRunner(DeployConfig(joystick=True), meta)
+
+
+def test_lockstep_solve_waits_its_timeout_once_not_at_every_tick(meta, tmp_path):
+    class Hung:  # a solver that never finishes
+        def __init__(self):
+            self.e = threading.Event()
+
+        def done(self):
+            return False
+
+        def join(self, timeout=None):
+            self.e.wait(timeout)
+
+    timeout = 0.3
+    r = DeployRunner(DeployConfig(legs=["FL"], imus=[ImuPort("FL", "/dev/null")],
+                                  clock="lockstep", out_dir=tmp_path,
+                                  session=SessionConfig(solve_timeout_s=timeout)), meta)
+    r.session.state = State.SOLVE
+    r._jobs.append(Hung())
+    t0 = time.monotonic()
+    for _ in range(20):  # 20 ticks of SOLVE: the wall-clock wait is spent on the first
+        r._wait_solver()
+    assert timeout - 0.05 < time.monotonic() - t0 < timeout + 0.5
+    r.request_stop()  # and a stop ends a wait at once
+    r._jobs.append(Hung())
+    t0 = time.monotonic()
+    r._wait_solver()
+    assert time.monotonic() - t0 < 0.1
