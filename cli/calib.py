@@ -57,12 +57,24 @@ def cmd_plan(args) -> int:
                                n_basis=args.basis, seed=args.seed)
     except ValueError as e:
         raise _Fail(str(e)) from None
+    if not args.rate >= 20.0:  # as the CSV readers: slower is not a time column in seconds
+        raise _Fail(f"--rate must be >= 20 Hz, got {args.rate:g}")
     t0 = time.process_time()
-    plan = plan_excitation(cfg)
+    try:
+        plan = plan_excitation(cfg)
+    except (RuntimeError, ValueError) as e:  # no motion inside the limits, a bad start pose
+        raise _Fail(str(e)) from None
     cpu = time.process_time() - t0
-    if plan.kappa > 1.02:
-        raise _Fail(f"the optimiser reached kappa {plan.kappa:.4f} > 1.02 for leg {args.leg}; "
+    # what is written, checked between the optimiser's grid points too
+    audit = plan.audit()
+    kappa = max(plan.kappa, audit["kappa"])
+    if kappa > 1.02:
+        raise _Fail(f"the optimiser reached kappa {kappa:.4f} > 1.02 for leg {args.leg}; "
                     "try more basis functions (--basis) or another --seed")
+    if audit["position_excess"] > 0 or audit["velocity_excess"] > 0:
+        raise _Fail(f"the motion leaves the joint limits between the optimiser's samples "
+                    f"({audit['position_excess']:.3g} rad, {audit['velocity_excess']:.3g} rad/s "
+                    "past them); try a longer --offset-range or fewer --basis")
     plan.to_csv(args.out, rate_hz=args.rate)
     lo, hi = plan.steady_window
     print(f"leg {plan.leg}: kappa(Sigma_FF) = {plan.kappa:.5f} reached in {cpu:.2f} s CPU; "

@@ -169,6 +169,11 @@ class LiftSchedule:
     adapt: bool = False
 
     def __post_init__(self) -> None:
+        for k in ("shift", "lift", "hold", "lower", "kp", "kd", "t_r", "ground_clearance",
+                  "n_basis", "periods", "seed"):
+            v = getattr(self, k)  # a JSON string or null: one line here, not a TypeError later
+            if isinstance(v, bool) or not isinstance(v, int | float | np.number):
+                raise ValueError(f"{k} must be a number, got {v!r}")  # noqa: TRY004
         for k in ("shift", "lift", "hold", "lower"):
             v = getattr(self, k)
             if not (np.isfinite(v) and v > 0):
@@ -183,7 +188,11 @@ class LiftSchedule:
                                                and v > 0):
                     raise ValueError(f"shift_by_leg[{leg}] must be a positive duration (s), "
                                      f"got {v!r}")
-            self.shift_by_leg = {leg: float(v) for leg, v in self.shift_by_leg.items()}
+            # legs as shift_of() asks for them: "fl" would be accepted and never found
+            by_leg = {check_leg(leg): float(v) for leg, v in self.shift_by_leg.items()}
+            if len(by_leg) != len(self.shift_by_leg):
+                raise ValueError(f"shift_by_leg names a leg twice: {sorted(self.shift_by_leg)}")
+            self.shift_by_leg = by_leg
         if not (np.isfinite(self.kp) and self.kp > 0 and np.isfinite(self.kd) and self.kd >= 0):
             raise ValueError(f"kp must be > 0 and kd >= 0 (finite), got kp {self.kp}, kd {self.kd}")
         if not (np.isfinite(self.ground_clearance) and self.ground_clearance >= 0):
@@ -193,6 +202,7 @@ class LiftSchedule:
                 # a bad JSON value, reported like the others (the loaders catch ValueError)
                 raise ValueError(  # noqa: TRY004
                     f"{k} must be true or false, got {getattr(self, k)!r}")
+        self.excitation_config("FL")  # t_r, n_basis, periods: checked now, not at the plan
         self._plans: dict[str, ExcitationPlan] = {}
 
     # ------------------------------------------------------------------ metadata

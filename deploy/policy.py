@@ -85,6 +85,14 @@ class PolicyMeta:
 
     @classmethod
     def from_dict(cls, d: Mapping, path: Path) -> PolicyMeta:
+        """The metadata ``d`` (read from ``path``); ValueError (one line) if malformed."""
+        try:
+            return cls._from_dict(d, path)
+        except (TypeError, AttributeError, KeyError) as e:  # a value of the wrong type
+            raise ValueError(f"malformed metadata ({type(e).__name__}: {e})") from None
+
+    @classmethod
+    def _from_dict(cls, d: Mapping, path: Path) -> PolicyMeta:
         if not isinstance(d, Mapping):
             raise ValueError("policy metadata must be a JSON object")  # noqa: TRY004
         if d.get("schema_version") != 1:
@@ -116,6 +124,14 @@ class PolicyMeta:
             raise ValueError("policy metadata lacks observation.terms")
         check_terms(obs["terms"])
         history_length(obs)  # ValueError unless size is whole frames of the terms
+        c = obs.get("clip")  # checked here, not at the first tick of a lift
+        if isinstance(c, bool) or not isinstance(c, int | float) or not (np.isfinite(c) and c > 0):
+            raise ValueError(f"observation.clip must be a positive number, got {c!r}")
+        for t in obs["terms"]:
+            if t["name"] == "base_lin_vel" and t.get("source", "zero") != "zero":
+                # the loop has no velocity estimate: it would feed such a policy zeros
+                raise ValueError(f"base_lin_vel from {t.get('source')!r}: deploy gives it only "
+                                 "as zero (source 'zero')")
         lc = d.get("lift_command") or {}
         lift = {}
         for leg in ("none", "FL", "FR", "RL", "RR"):
@@ -125,12 +141,15 @@ class PolicyMeta:
         kp, kd = _vec12(d, "kp"), _vec12(d, "kd")
         if np.any(kp < 0) or np.any(kd < 0):
             raise ValueError("kp and kd must be >= 0")
+        default_pose = _vec12(d, "default_pose")
+        if np.any(default_pose < lower) or np.any(default_pose > upper):
+            raise ValueError("default_pose must lie within soft_limits")
         legs = d.get("legs", list(LEGS))
         if not isinstance(legs, list) or not legs or any(g not in LEGS for g in legs):
             raise ValueError(f"legs must be a non-empty list of {', '.join(LEGS)}")
         return cls(
             path=path, onnx_path=path.parent / onnx_name, name=str(d.get("name", path.stem)),
-            control_dt=dt, default_pose=_vec12(d, "default_pose"), kp=kp, kd=kd,
+            control_dt=dt, default_pose=default_pose, kp=kp, kd=kd,
             action_scale=scale, action_clip=clip, action_mode=mode,
             soft_lower=lower, soft_upper=upper, observation=dict(obs), lift_command=lift,
             schedule=LiftSchedule.from_metadata(d.get("lift_schedule") or {}),
@@ -169,10 +188,11 @@ def default_policy_path(search: list[Path] | None = None, leg: str | None = None
         for p in sorted(d.glob("*.json")):
             try:
                 meta = json.loads(p.read_text(encoding="utf-8"))
-            except (OSError, json.JSONDecodeError):
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError):
                 continue
+            legs = meta.get("legs", LEGS) if isinstance(meta, dict) else None
             if (isinstance(meta, dict) and meta.get("schema_version") == 1 and "onnx" in meta
-                    and want <= set(meta.get("legs", LEGS))):
+                    and isinstance(legs, list | tuple) and want <= set(map(str, legs))):
                 found.append((str(meta.get("created_utc", "")), p.stat().st_mtime, p.name, p))
         if found:
             return max(found)[-1]

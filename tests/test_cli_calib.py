@@ -162,7 +162,7 @@ def test_solve_output_problems_one_line_exit_2(tmp_path, capsys):
     assert len(err) == 1 and err[0].startswith("a2i-calib plan: error: /proc/nope")
 
 
-def test_bad_arguments_exit_2():
+def test_bad_arguments_exit_2(capsys):
     r = subprocess.run(
         [sys.executable, "-m", "cli.calib", "plan", "--leg", "XX", "--out", "x"],
         check=False,
@@ -170,6 +170,12 @@ def test_bad_arguments_exit_2():
         text=True,
     )
     assert r.returncode == 2 and "unknown leg" in r.stderr
+    # once a traceback (numpy's seed) and a CSV of a few rows
+    for extra, why in ((["--seed", "-1"], "seed must be an integer >= 0"),
+                       (["--rate", "5"], "--rate must be >= 20 Hz")):
+        assert main(["plan", "--leg", "FL", "--out", "x.csv", *extra]) == 2, extra
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and why in err[0], err
     r = subprocess.run(
         [sys.executable, "-m", "cli.calib", "--help"], check=False, capture_output=True, text=True
     )

@@ -47,6 +47,18 @@ def test_load_and_run(policy_json):
     (lambda d: d["lift_schedule"].update(typo=1), "lift_schedule"),
     (lambda d: d.update(legs=["XX"]), "legs"),
     (lambda d: d.update(legs=[]), "legs"),
+    # found at load, not at the first tick of a lift (which damped the standing robot)
+    (lambda d: d["observation"].update(clip=0), "observation.clip"),
+    (lambda d: d["observation"].update(clip=None), "observation.clip"),
+    (lambda d: d["observation"]["terms"][0].update(source="leg_odometry"), "only as zero"),
+    (lambda d: d["lift_schedule"].update(n_basis=1), "n_basis"),
+    (lambda d: d["lift_schedule"].update(t_r="0.5"), "t_r must be a number"),
+    (lambda d: d["lift_schedule"].update(shift_by_leg={"FL": 2.0, "fl": 3.0}), "twice"),
+    (lambda d: d.update(default_pose=[5.0] * 12), "default_pose must lie within"),
+    # values of the wrong type: one line, not a TypeError or AttributeError
+    (lambda d: d["observation"].update(terms=["joint_pos"]), "malformed"),
+    (lambda d: d.update(action=[1, 2]), "malformed"),
+    (lambda d: d.update(control_dt=None), "malformed"),
 ])
 def test_bad_metadata_is_refused_with_a_reason(tmp_path, mutate, msg):
     d = hold_policy_metadata()
@@ -55,6 +67,15 @@ def test_bad_metadata_is_refused_with_a_reason(tmp_path, mutate, msg):
     p.write_text(json.dumps(d))
     with pytest.raises(ValueError, match=msg):
         PolicyMeta.load(p)
+
+
+def test_shift_by_leg_names_legs_in_any_case(tmp_path):
+    d = hold_policy_metadata()
+    d["lift_schedule"]["shift_by_leg"] = {"fl": 2.0}
+    p = tmp_path / "p.json"
+    p.write_text(json.dumps(d))
+    sched = PolicyMeta.load(p).schedule
+    assert sched.shift_of("FL") == 2.0 and sched.shift_by_leg == {"FL": 2.0}
 
 
 def test_policy_named_by_its_onnx(policy_json, tmp_path):
@@ -79,6 +100,11 @@ def test_missing_network_and_newest_policy(tmp_path):
     assert default_policy_path([tmp_path]) == new
     with pytest.raises(ValueError, match="no policy JSON"):
         default_policy_path([tmp_path / "empty"])
+    # a stray JSON with no usable legs list is passed over, not a TypeError for every leg
+    stray = json.loads(old.read_text())
+    stray.update(legs=None, created_utc="2031-01-01T00:00:00+00:00")
+    (tmp_path / "stray.json").write_text(json.dumps(stray))
+    assert default_policy_path([tmp_path], leg="FL") == new
     (tmp_path / "new.onnx").unlink()
     with pytest.raises(ValueError, match="not found"):
         PolicyRunner(PolicyMeta.load(new))

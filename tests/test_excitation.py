@@ -252,7 +252,19 @@ def test_to_csv(tmp_path, plans):
     np.testing.assert_allclose(data[:, 4:7], dq, atol=1e-8)
 
 
+def test_the_grid_sees_every_harmonic_and_the_audit_checks_between_its_points(plans):
+    # 40 terms of a 0.32 s period on 64 points aliased: kappa 1.0 there, 1421 in the motion
+    cfg = ExcitationConfig(leg="FL", t_r=0.04, n_basis=40)
+    assert ExcitationProblem(cfg, cfg.q0()).N == 8 * 40  # FL: its mirror is the identity
+    for plan in plans.values():  # the default plans: the grid told the truth
+        a = plan.audit()
+        assert a["kappa"] == pytest.approx(plan.kappa, rel=1e-6)
+        assert a["position_excess"] == 0 and a["velocity_excess"] == 0
+
+
 def test_bad_inputs():
+    with pytest.raises(ValueError, match="seed"):
+        ExcitationConfig(leg="FL", seed=-1)
     with pytest.raises(ValueError):
         ExcitationConfig(leg="XX")
     with pytest.raises(ValueError):
