@@ -229,7 +229,15 @@ class DeployRunner:
         self._kin = {}
         for leg in dict.fromkeys(config.legs or sorted(imu_legs)):
             if leg in self.metas:
-                self.metas[leg].schedule.prepare(leg)
+                sched = self.metas[leg].schedule
+                sched.prepare(leg)
+                # SOLVE reads the excitation back from the rings after the lowering and the
+                # stand: a shorter history would have lost its start by then
+                need = sched.plan(leg).duration + sched.lower + 5.0
+                if config.record_seconds < need:
+                    raise DeployError(f"--record-seconds {config.record_seconds:g} cannot hold "
+                                      f"{leg}'s calibration window until SOLVE: give at least "
+                                      f"{np.ceil(need):.0f}")
             self._kin[leg] = LegKinematics.from_urdf(leg=leg)
         self.n_cmd = config.session.commands_per_tick
         rec_cfg = RecorderConfig(seconds=config.record_seconds, imu_hz=config.imu_hz,

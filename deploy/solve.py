@@ -109,7 +109,8 @@ def extract_leg_data(snapshot, leg: str, time_base: TimeBase, t0: float, t1: flo
         raise ValueError(f"no foot IMU stream for {leg} in the recording")
     imu = snapshot.imu[leg]
     te = time_base.encoder_times(ls)
-    sel = (te >= t0 - pad_s) & (te <= t1 + pad_s)
+    eps = 1e-9  # ms ticks as float s: 7624e-3 - 0.6 > 7024e-3, one sample lost at an edge
+    sel = (te >= t0 - pad_s - eps) & (te <= t1 + pad_s + eps)
     ls, te = ls[sel], te[sel]
     o = _unique_sorted(te)
     ls, te = ls[o], te[o]
@@ -165,6 +166,13 @@ def solve_leg(recorder, leg: str, window: tuple[WindowMark, WindowMark], time_ba
                              f"({len(data.t_imu)}): is the IMU on the right port?")
         if len(data.t_enc) < 10:
             raise ValueError(f"only {len(data.t_enc)} LowState samples in the window")
+        # a wrapped ring no longer holds the window's start: the solve would quietly use the
+        # rest (--record-seconds 12 solved 5 of an 18 s excitation and wrote it)
+        wrapped = data.lowstate_overwritten > 0 or data.imu_overwritten > 0
+        if wrapped and (data.t_enc[0] > start.t_enc - pad_s + 0.05
+                        or data.t_imu[0] > start.t_enc + 0.05):
+            raise ValueError("the recorder no longer holds the start of the calibration "
+                             "window (its ring wrapped): give a larger --record-seconds")
         # Over the same rows the times were mapped from (the whole snapshot, not the window).
         imu_all = snap.imu[leg]
         clock_problems = time_base.check(snap.lowstate, imu_all[time_base.imu_valid(imu_all)])
@@ -292,6 +300,10 @@ class SolveJob:
     def _run(self) -> None:
         try:
             self._out = self.fn(*self.args, **self.kwargs)
+        except Exception as e:  # the worker must outlive any one job
+            log.exception("solve worker: %s failed", getattr(self.fn, "__name__", "job"))
+            leg = self.args[1] if len(self.args) > 1 and isinstance(self.args[1], str) else "?"
+            self._out = SolveOutcome(leg=leg, error=f"{type(e).__name__}: {e}")
         finally:
             self._done.set()
 

@@ -111,8 +111,9 @@ class EffectFit:
 @dataclass
 class Diagnosis:
     """The answer. effects: most likely first (the chosen combination leads).
-    where: {"channels"|"joints"|"legs"|"phases"|"bands": {name: gap}} before, and
-    ``where_after`` with the chosen effects (held-out split)."""
+    where: {"channels"|"joints"|"legs"|"phases"|"bands": {name: gap}} before, over every
+    window; ``where_heldout`` the same over the held-out windows and ``where_after`` there
+    with the chosen effects (the two to compare; empty without a significant gap)."""
 
     significant_gap: bool
     gap_before: float
@@ -127,6 +128,7 @@ class Diagnosis:
     after: Prediction | None = field(repr=False, default=None)
     heldout_mask: np.ndarray | None = field(repr=False, default=None)
     seconds: float = 0.0
+    where_heldout: dict[str, dict[str, float]] = field(default_factory=dict)
 
     def to_json(self) -> dict:
         return {
@@ -136,6 +138,7 @@ class Diagnosis:
             "effects": [e.to_json() for e in self.effects] if self.significant_gap else [],
             "candidates": [e.to_json() for e in self.effects],
             "where": self.where,
+            "where_heldout": self.where_heldout,
             "where_after": self.where_after,
             "screening": self.screening,
             "mount": self.recording.mount,
@@ -635,13 +638,15 @@ def diagnose(rec: Recording, config: DiagnoseConfig | None = None) -> Diagnosis:
     ranked = chosen + [f for f in fits if not f.chosen]
     where = _where(pb, nominal, pb.train_mask | pb.held_mask)
     where_after = _where(pb, after_pred, pb.held_mask) if significant else {}
+    where_heldout = _where(pb, nominal, pb.held_mask) if significant else {}
     secs = time.perf_counter() - t_start
     verdict = ("significant gap: " + " + ".join(f"{e.name}@{','.join(e.location)}" for e in chosen)
                if significant else "no significant gap")
     _progress(cfg, f"{verdict}; held-out gap {gap_held:.4f} -> {gap_after:.4f} "
                    f"({pb.evals} replays, {secs:.1f} s)")
     return Diagnosis(significant, gap_held, gap_after, gap_train, ranked, where, where_after,
-                     screening, rec, nominal, after_pred, pb.held_mask, secs)
+                     screening, rec, nominal, after_pred, pb.held_mask, secs,
+                     where_heldout=where_heldout)
 
 
 def _outlier_windows(ms: np.ndarray, k: float = 3.0) -> np.ndarray:

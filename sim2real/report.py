@@ -47,7 +47,8 @@ def _bars(ax, before: dict, after: dict, title: str) -> None:
 
 
 def _where_figure(d: Diagnosis) -> str:
-    w, wa = d.where, d.where_after
+    # before and after on the same (held-out) windows when there is an after
+    w, wa = d.where_heldout or d.where, d.where_after
     fig, axes = plt.subplots(2, 3, figsize=(13, 7))
     _bars(axes[0, 0], w["joints"], wa.get("joints", {}), "per joint")
     _bars(axes[0, 1], w["legs"], wa.get("legs", {}), "per leg")
@@ -140,7 +141,8 @@ def render_report(d: Diagnosis) -> str:
     scr = d.screening
     ch_rows = "".join(
         f"<tr><td>{e(n)}</td><td>{v:.4f}</td><td>{d.where_after.get('channels', {}).get(n, float('nan')):.4f}</td></tr>"
-        for n, v in sorted(d.where["channels"].items(), key=lambda kv: -kv[1])[:12])
+        for n, v in sorted((d.where_heldout or d.where)["channels"].items(),
+                           key=lambda kv: -kv[1])[:12])
     chosen_txt = " + ".join(f"{f.name} at {', '.join(f.location)}" for f in chosen) or "none"
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'>",

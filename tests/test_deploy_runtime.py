@@ -69,3 +69,10 @@ def test_lockstep_solve_waits_its_timeout_once_not_at_every_tick(meta, tmp_path)
     t0 = time.monotonic()
     r._wait_solver()
     assert time.monotonic() - t0 < 0.1
+
+
+def test_a_record_history_shorter_than_a_lift_is_refused(meta):
+    # SOLVE reads the excitation back from the rings after the lowering and the stand
+    with pytest.raises(DeployError, match="--record-seconds 5 cannot hold FL's"):
+        DeployRunner(DeployConfig(legs=["FL"], imus=[ImuPort("FL", "/dev/null")],
+                                  record_seconds=5.0), meta)

@@ -129,3 +129,33 @@ def test_realtime_clock_check_refuses_a_clock_that_jumped():
     (reason,) = tb.check(steady, bad)
     assert reason.startswith("the foot IMU's clock does not follow the host clock")
     assert LockstepTimeBase().check(jumped, bad) == []
+
+
+def test_a_wrapped_ring_is_refused_not_solved_on_what_is_left(tmp_path):
+    # 10 s of history, 15 s recorded: a window from 2 s on has lost its first 3 s
+    n = 7500
+    rec = _recorder_with(1000 + 2 * np.arange(n), 10**9 + np.arange(n) * 2 * 10**6,
+                         (1.0 + np.arange(6000) / 400.0) * 1e9)
+    w = (WindowMark(10**9 + 500 * 2 * 10**6, 2.0), WindowMark(10**9 + 5500 * 2 * 10**6, 12.0))
+    out = solve_leg(rec, "FL", w, LockstepTimeBase(), tmp_path)
+    assert not out.accepted and "ring wrapped" in out.error and "--record-seconds" in out.error
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_worker_outlives_a_job_that_raises(monkeypatch):
+    from deploy import solve
+    from deploy.solve import SolveJob, SolveWorker
+
+    def broken():  # e.g. matplotlib that cannot import on the robot
+        raise ModuleNotFoundError("no matplotlib")
+
+    monkeypatch.setattr(solve, "_warm_figure", broken)
+    w = SolveWorker()
+    try:
+        w.warm_up(timeout=5.0)
+        job = SolveJob((), {}, fn=lambda: "solved")
+        w._q.put(job)
+        job.join(5.0)
+        assert job.done() and job.outcome() == "solved"  # the next job still runs
+    finally:
+        w.close()
