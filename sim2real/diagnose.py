@@ -91,6 +91,7 @@ class EffectFit:
     x: np.ndarray | None = field(default=None, repr=False)
     drop_times: np.ndarray | None = field(default=None, repr=False)
     partner_x: np.ndarray | None = field(default=None, repr=False)
+    partner_ci: list[float] | None = field(default=None, repr=False)
     win_ss: np.ndarray | None = field(default=None, repr=False)  # (W, C) held-out windows
     win_n: np.ndarray | None = field(default=None, repr=False)  # (W,) samples per window
     k_bic: int | None = field(default=None, repr=False)  # parameters in the BIC, when not k
@@ -480,9 +481,19 @@ def _refit_pair(pb: _Problem, a: EffectFit, b: EffectFit, fit_w, fit_mask) -> Ef
     z = es.result.xbest if es.result.xbest is not None else z0
     x = lo + np.clip(z, 0, 1) * span
     held = pb.run(build(z), pb.held)
-    fit = pb.score(EffectFit(cb.name, [cb.location], {cb.params[0]: float(x[1])}, dict(b.ci),
-                             0.0, 0.0, 2, b.evaluations, candidate=cb, x=x[1:]), held)
+
+    def res_fn(xx):
+        return pb.residual(pb.run(ca.build(xx[:1]) + cb.build(xx[1:]), fit_w), fit_mask).ravel()
+
+    # the pair's own intervals, at its optimum (each effect's alone no longer hold there: they
+    # missed both the parameters and the truth)
+    steps = [c.grid if c.grid else (c.hi[0] - c.lo[0]) * 0.01 for c in (ca, cb)]
+    ci = _ci_from_jacobian(res_fn, x, lo, hi, steps)
+    fit = pb.score(EffectFit(cb.name, [cb.location], {cb.params[0]: float(x[1])},
+                             {cb.params[0]: ci[1].tolist()}, 0.0, 0.0, 2, b.evaluations,
+                             candidate=cb, x=x[1:]), held)
     fit.partner_x = x[:1]  # a's parameter within the pair, applied if the pair is chosen
+    fit.partner_ci = ci[0].tolist()
     return fit
 
 
@@ -630,6 +641,7 @@ def diagnose(rec: Recording, config: DiagnoseConfig | None = None) -> Diagnosis:
                     prev = chosen[-1]
                     prev.x = trial.partner_x
                     prev.parameters = {prev.candidate.params[0]: float(trial.partner_x[0])}
+                    prev.ci = {prev.candidate.params[0]: trial.partner_ci}
                 trial.chosen = True
                 chosen.append(trial)
                 gap_after = trial.gap_after_heldout

@@ -220,3 +220,19 @@ def test_outlier_windows_are_left_out_only_when_no_candidate_explains_them(short
     full = fit(np.full(5, 0.1))
     assert _scored_windows(pb, ss0, n0, outl, [partial, full]).all()
     assert ss0.shape == (5, c)
+
+
+def test_a_jointly_refitted_pair_reports_its_own_intervals():
+    # armature + backlash on one thigh: the pair's refit moves both parameters, whose intervals
+    # were the single fits' and held neither the estimates nor the truth
+    from sim import effects as fx
+
+    rec = synthesize([fx.Armature(0.02, joints=["RL_thigh"]), fx.Backlash(0.02, joints=["RL_thigh"])],
+                     SynthConfig(mount="suspended", duration=4.0, seed=1))
+    d = diagnose(rec)
+    chosen = [e for e in d.effects if e.chosen]
+    assert {e.name for e in chosen} == {"armature", "backlash"}
+    for e in chosen:
+        for k, v in e.parameters.items():
+            assert e.ci[k][0] <= v <= e.ci[k][1], (e.name, v, e.ci[k])
+    assert d.effects[1].ci["half_width"][0] <= 0.02 <= d.effects[1].ci["half_width"][1]
