@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.atomic import os_error_line, write_text_atomic
-from calib.csvio import CalibInputError, read_encoders_csv, read_imu_csv
+from calib.csvio import MAX_MEDIAN_STEP_S, CalibInputError, read_encoders_csv, read_imu_csv
 from calib.joints import LEGS, check_leg
 
 EXIT_BAD_INPUT = 2
@@ -57,8 +57,9 @@ def cmd_plan(args) -> int:
                                n_basis=args.basis, seed=args.seed)
     except ValueError as e:
         raise _Fail(str(e)) from None
-    if not args.rate >= 20.0:  # as the CSV readers: slower is not a time column in seconds
-        raise _Fail(f"--rate must be >= 20 Hz, got {args.rate:g}")
+    min_rate = 1.0 / MAX_MEDIAN_STEP_S  # what the CSV readers take for seconds
+    if not args.rate >= min_rate:
+        raise _Fail(f"--rate must be >= {min_rate:g} Hz, got {args.rate:g}")
     t0 = time.process_time()
     try:
         plan = plan_excitation(cfg)

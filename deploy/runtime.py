@@ -169,9 +169,9 @@ def rss_bytes() -> int:
         return 0
 
 
-def _check_imu_ports(imus: Sequence[ImuPort]) -> None:
-    """One port per leg, and IMUs sharing a port told apart by their node ids: else one leg's
-    ring would hold two IMUs' samples, interleaved."""
+def _imus_by_port(imus: Sequence[ImuPort]) -> dict[str, list[ImuPort]]:
+    """port -> its IMUs; DeployError unless one port per leg and IMUs sharing a port told
+    apart by their node ids: else one leg's ring would hold two IMUs' samples, interleaved."""
     legs = [i.leg for i in imus]
     twice = sorted({g for g in legs if legs.count(g) > 1})
     if twice:
@@ -184,6 +184,7 @@ def _check_imu_ports(imus: Sequence[ImuPort]) -> None:
         if len(shared) > 1 and len(nodes) != len(shared):
             raise DeployError(f"port {port} is shared by {len(shared)} IMUs: give every one "
                               "its own node id, e.g. --imu FL=/dev/ttyUSB0#1")
+    return by_port
 
 
 class DeployRunner:
@@ -206,7 +207,7 @@ class DeployRunner:
         for leg in config.legs:
             check_leg(leg)
         imu_legs = {i.leg for i in config.imus}
-        _check_imu_ports(config.imus)
+        _imus_by_port(config.imus)  # refused here, before anything starts
         if config.joystick and not imu_legs:
             raise DeployError("no foot IMU: give every leg the remote may calibrate its port, "
                               "e.g. --imu FL=/dev/ttyUSB0")
@@ -338,10 +339,7 @@ class DeployRunner:
             raise DeployError(str(e)) from None
         self.ls_queue = self.transport.queue(KEY_LOWSTATE, maxlen=5000)
         self.wl_queue = self.transport.queue(KEY_WIRELESS, maxlen=1000)
-        by_port: dict[str, list[ImuPort]] = {}
-        for imu in c.imus:
-            by_port.setdefault(imu.port, []).append(imu)
-        for port, imus in by_port.items():
+        for port, imus in _imus_by_port(c.imus).items():
             nodes = {i.node: i.leg for i in imus if i.node is not None}
             legs = [i.leg for i in imus]
             reader = SerialImuReader(
