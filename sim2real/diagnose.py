@@ -448,9 +448,13 @@ def _fit_packet_loss(pb: _Problem) -> EffectFit | None:
     h = z * np.sqrt(p * (1 - p) / n_train + z**2 / (4 * n_train**2)) / den
     drops = np.sort(np.concatenate([d_train, d_held]))
     held = pb.run([PacketLoss(drop_times=drops)], pb.held, key="nominal")
+    # which packets were lost cannot be predicted, only found: the held-out windows are scored
+    # with the drops found on them, so those drops are what the held-out BIC must pay for (one
+    # parameter each; the training drops do not touch a held-out window)
     fit = EffectFit("packet_loss", ["all"], {"probability": p},
                     {"probability": [max(c - h, 0.0), min(c + h, 1.0)]},
-                    0.0, 0.0, int(d_train.size), pb.evals - e0, drop_times=drops)
+                    0.0, 0.0, int(d_train.size), pb.evals - e0, drop_times=drops,
+                    k_bic=int(d_held.size))
     return pb.score(fit, held)
 
 

@@ -9,8 +9,10 @@ Re-synchronisation at a window start ``t0`` (sample ``i0``):
   biased IMU must not move the simulated robot): the floor normal in the base frame is the normal
   of the plane through the four feet, the base is placed with that normal vertical and the feet
   on the floor (``Go2Sim.reset``); the base velocity is the one that keeps the feet still
-  (least squares over the four foot Jacobians). Motion capture (``base_pos``/``base_vel``)
-  overrides both when present.
+  (least squares over the four foot Jacobians). Motion capture (``base_pos``/``base_vel``),
+  when present, sets the base position and linear velocity instead (no burn-in); the tilt
+  still comes from the legs, the heading from the IMU, and the body rate is the one that keeps
+  the feet still at that velocity.
 * commands: every command sent in the 0.07 s before ``t0`` is re-issued at its own send time, so
   that a delayed command still arrives inside the window.
 
@@ -167,14 +169,19 @@ class Replayer:
             sim.reset(self.q_m[i0])
             d.qvel[:] = self.dq_m[i0]
             return
-        if rec.base_pos is not None and rec.base_vel is not None:
-            sim.reset(self.q_m[i0], base_pos=rec.base_pos[i0], base_quat_wxyz=rec.base_quat[i0])
-            d.qvel[0:3] = rec.base_vel[i0]
-            d.qvel[3:6] = rec.base_gyro[i0]
-            d.qvel[6:] = self.dq_m[i0]
-            return
-        sim.reset(self.q_m[i0], base_quat_wxyz=self._leg_tilt(sim, i0))
-        d.qpos[2] -= CONTACT_SINK
+        tilt = self._leg_tilt(sim, i0)
+        mocap = rec.base_pos is not None and rec.base_vel is not None
+        if mocap:
+            # motion capture says where the base is and how fast it moves, not how it is
+            # tilted or turning: those still come from the legs, because the body IMU's
+            # attitude and rate are among what is diagnosed (taken from a misaligned IMU they
+            # tilted the simulated robot with it, and no IMU candidate could explain the gap).
+            # Only the IMU's heading is used, to put the world-frame velocity along the body.
+            quat = _with_heading(tilt, _heading(rec.base_quat[i0]))
+            sim.reset(self.q_m[i0], base_pos=rec.base_pos[i0], base_quat_wxyz=quat)
+        else:
+            sim.reset(self.q_m[i0], base_quat_wxyz=tilt)
+            d.qpos[2] -= CONTACT_SINK
         d.qvel[6:] = self.dq_m[i0]
         mujoco.mj_kinematics(m, d)
         mujoco.mj_comPos(m, d)
@@ -184,8 +191,15 @@ class Replayer:
             mujoco.mj_jacSite(m, d, jac, None, m.site(f"{leg}_foot").id)
             rows.append(jac[:, :6].copy())
             rhs.append(-jac[:, 6:] @ self.dq_m[i0])
-        v, *_ = np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)
-        d.qvel[0:6] = v
+        a, b = np.vstack(rows), np.concatenate(rhs)
+        if mocap:
+            # the body rate that keeps the feet still, given the measured linear velocity
+            v_lin = np.asarray(rec.base_vel[i0], dtype=float)
+            w, *_ = np.linalg.lstsq(a[:, 3:6], b - a[:, 0:3] @ v_lin, rcond=None)
+            d.qvel[0:6] = np.concatenate([v_lin, w])
+        else:
+            v, *_ = np.linalg.lstsq(a, b, rcond=None)
+            d.qvel[0:6] = v
 
     def _leg_tilt(self, sim: Go2Sim, i0: int) -> np.ndarray:
         """Base orientation (w, x, y, z, zero yaw) that makes the feet plane horizontal."""
@@ -213,7 +227,7 @@ class Replayer:
         """Replay samples ``i0 .. i1 - 1``; returns the first sample compared (the one after the
         release of the joints, see :data:`BURN_IN`)."""
         rec, d, dt = self.rec, sim.data, self.dt
-        burn = ground and rec.base_pos is None
+        burn = ground
         ib = max(0, i0 - self._n_burn) if burn else i0
         release = max(i0, ib + self._n_burn) if burn else i0
         release = min(release, i1 - 1)
@@ -285,6 +299,24 @@ class Replayer:
     def _issue(self, sim: Go2Sim, c: int) -> None:
         cm = self.cmd_m
         sim.set_command(cm["q"][c], cm["dq"][c], cm["kp"][c], cm["kd"][c], cm["tau"][c])
+
+
+def _heading(quat_wxyz) -> float:
+    """Heading (rad) of a base->world quaternion: the world yaw of the base's x axis."""
+    w, x, y, z = (float(v) for v in quat_wxyz)
+    return float(np.arctan2(2.0 * (x * y + w * z), 1.0 - 2.0 * (y * y + z * z)))
+
+
+def _with_heading(quat_wxyz, heading: float) -> np.ndarray:
+    """``quat_wxyz`` turned about world z so that its heading is ``heading`` (tilt kept)."""
+    half = 0.5 * (heading - _heading(quat_wxyz))
+    qz = np.array([np.cos(half), 0.0, 0.0, np.sin(half)])
+    w1, x1, y1, z1 = qz
+    w2, x2, y2, z2 = (float(v) for v in quat_wxyz)
+    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+                     w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                     w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
 
 
 EffectFactory = Callable[[], Sequence[Effect]]

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from sim.effects import ActuationLatency
+from sim2real import metrics as mt
 from sim2real.cli import main
 from sim2real.diagnose import DiagnoseConfig, diagnose
 from sim2real.recording import read_csv, read_mcap_recording, write_csv
@@ -171,6 +172,29 @@ def test_ground_replay_burn_in_settles_the_contacts():
     assert gaps[1] > 2 * gaps[0]
 
 
+
+def test_motion_capture_does_not_take_the_attitude_from_the_diagnosed_imu():
+    """With motion-capture columns the replay still tilts the base from the legs: when it took
+    the body IMU's quaternion and rate, a misaligned IMU tilted the simulated robot with it (a
+    gap of 0.6 that no IMU candidate explained, and "no significant gap"). The mocap replay
+    keeps the burn-in, so its floor is no worse than the legs-only one."""
+    from sim.effects import ImuMisalignment
+
+    rv = np.deg2rad(4.0) * np.array([0.6, -0.8, 0.0])
+    cfg = SynthConfig(mount="ground", duration=6.0, seed=5, base_truth=True)
+    rec = synthesize([ImuMisalignment(rv)], cfg)
+    assert rec.base_pos is not None
+    d = diagnose(rec, DiagnoseConfig())
+    assert d.significant_gap and d.effects[0].name == "imu_misalignment"
+    fit = d.effects[0].parameters
+    np.testing.assert_allclose([fit["rot_x"], fit["rot_y"]], rv[:2], atol=np.deg2rad(0.3))
+    assert d.gap_after < 0.25 * d.gap_before
+
+    null = synthesize([], cfg)
+    cs = mt.channel_set(null)
+    p = Replayer(null).run([], make_windows(null, 0.5))
+    assert mt.gap(mt.normalised_residual(cs, mt.pred_matrix(p), p.mask), cs.noise) < 0.045
+
 def test_torque_limit_search_stays_where_the_limit_binds():
     from sim2real.candidates import dynamic_candidates
     from sim2real.diagnose import _peak_torque
@@ -236,3 +260,21 @@ def test_a_jointly_refitted_pair_reports_its_own_intervals():
         for k, v in e.parameters.items():
             assert e.ci[k][0] <= v <= e.ci[k][1], (e.name, v, e.ci[k])
     assert d.effects[1].ci["half_width"][0] <= 0.02 <= d.effects[1].ci["half_width"][1]
+
+
+def test_packet_loss_pays_in_its_bic_for_the_drops_found_on_the_held_out_windows():
+    """The held-out windows are replayed with the drops found on them (which packets a robot
+    loses cannot be predicted), so those drops, one parameter each, are the BIC's; the training
+    windows' drops touch no held-out window."""
+    from sim.effects import PacketLoss
+    from sim2real.diagnose import _detect_drops, _fit_packet_loss, _Problem
+
+    rec = synthesize([PacketLoss(0.25)], SynthConfig(mount="suspended", duration=3.0, seed=4))
+    pb = _Problem(rec, DiagnoseConfig())
+    fit = _fit_packet_loss(pb)
+    held_drops, _ = _detect_drops(pb, pb.held)
+    train_drops, _ = _detect_drops(pb, pb.train)
+    assert held_drops.size > 0 and held_drops.size != train_drops.size
+    assert fit.k_bic == held_drops.size and fit.k == train_drops.size
+    in_held = [any(rec.t[a] <= t < rec.t[b - 1] for a, b in pb.held) for t in fit.drop_times]
+    assert sum(in_held) == held_drops.size
