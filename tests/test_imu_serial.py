@@ -8,6 +8,7 @@ import time
 import numpy as np
 import pytest
 import serial
+from loopback import wait_until
 
 from hw.clock_sync import ClockMapper
 from hw.hipnuc import encode_imu_frame
@@ -200,7 +201,9 @@ def test_hipnuc_one_imu_per_port_400hz():
             w.start()
         for w in writers:
             w.join()
-        time.sleep(0.2)
+        # every frame written is read, however long the reader threads were held up
+        for r in readers:
+            assert wait_until(lambda r=r: r.stats()["samples"] >= 200, 5.0), r.stats()
         for i, r in enumerate(readers):
             got = r.drain()
             assert len(got) == 200 and {s.node_id for s in got} == {i}

@@ -183,13 +183,16 @@ def test_lowstate_wire_format_rate_and_joystick_in_realtime():
     try:
         assert wait_until(lambda: q.received > 0, 5.0)
         time.sleep(2.2)
+        robot.stop()
+        st = robot.stats()
+        # none lost on the way: everything it published arrives
+        assert wait_until(lambda: q.received >= st["lowstates_published"], 5.0), (q.received, st)
         samples = q.drain()
         wireless = wq.drain()
-        st = robot.stats()
     finally:
         robot.stop()
         client.close()
-    assert len(samples) > 900
+    assert len(samples) > 900 and len(samples) == st["lowstates_published"]
     ticks = []
     for s in samples:
         assert len(s.payload) == 1180
@@ -197,11 +200,10 @@ def test_lowstate_wire_format_rate_and_joystick_in_realtime():
         v = decode_lowstate(s.payload)
         assert v.crc == lowstate_crc(s.payload)
         ticks.append(v.tick)
-    # the realtime tick is the mock's wall clock: 2 ms per message, +-1 ms where the OS held
-    # the mock up for a moment; none lost on the way (all it published arrived)
+    # the realtime tick is the mock's wall clock: 2 ms per message on average (a mock the OS
+    # held up publishes what it owes in a burst, a few at one tick: checked over the span)
     d = np.diff(ticks)
-    assert d.min() >= 0 and np.median(d) == 2
-    assert 0 <= st["lowstates_published"] - len(samples) <= 5, (len(samples), st)
+    assert d.min() >= 0
     if st["resyncs"] == 0:  # (a resync skips simulated time the wall clock has passed)
         assert abs((ticks[-1] - ticks[0]) - 2 * (len(ticks) - 1)) <= 20, st
     t = np.array([s.t_ns for s in samples]) * 1e-9
@@ -214,7 +216,10 @@ def test_lowstate_wire_format_rate_and_joystick_in_realtime():
     remote_keys = [int.from_bytes(bytes(decode_lowstate(s.payload).wireless_remote[2:4]),
                                   "little") for s in samples]
     pressed = [tk for tk, k in zip(ticks, remote_keys) if k == want]
-    assert pressed and abs(min(pressed) - 1800) <= 5 and abs(max(pressed) - 2198) <= 5
+    # the press is scripted in simulated time, the tick is the wall clock's: they part by up to
+    # resync_after_s before the mock resynchronises (a loaded machine)
+    slack = 5 + 1000 * cfg.resync_after_s
+    assert pressed and abs(min(pressed) - 1800) <= slack and abs(max(pressed) - 2198) <= slack
     assert set(remote_keys) == {0, want}
     wkeys = [int(decode_wireless_controller(w.payload)["keys"]) for w in wireless]
     assert want in wkeys and 0 in wkeys

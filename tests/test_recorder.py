@@ -362,18 +362,27 @@ def _produce_60s(rec: Recorder, n_imu: int, n_ls: int):
     threads.append(threading.Thread(target=lowstate))
     for th in threads:
         th.start()
-    seen = 0
-    while any(th.is_alive() for th in threads):  # a reader polls meanwhile, as the calibrator does
-        seen += rec.snapshot(0, 10_000_000).lowstate.shape[0] >= 0
+    # a reader polls the newest 20 ms meanwhile, as the calibrator does: every copy it gets is
+    # whole (consecutive ticks, each row's stamp its own) and the count never goes back
+    polls, last_total = 0, 0
+    while any(th.is_alive() for th in threads):
+        total = rec.counters()["lowstate"][0]
+        assert total >= last_total
+        last_total = total
+        ls = rec.snapshot(2_000_000 * (total - 10), 2_000_000 * total).lowstate
+        if len(ls):
+            ticks = ls["tick"].astype(np.int64)
+            assert np.all(np.diff(ticks) == 1) and np.all(ls["t_host_ns"] == 2_000_000 * ticks)
+            polls += 1
     for th in threads:
         th.join()
-    return seen
+    return polls
 
 
 def test_loses_nothing_60s_four_imus_and_lowstate():
     n_imu, n_ls = 60 * 400, 60 * 500
     rec = Recorder(RecorderConfig(seconds=60, imu_hz=400, lowstate_hz=500, headroom=1.0))
-    _produce_60s(rec, n_imu, n_ls)
+    assert _produce_60s(rec, n_imu, n_ls) > 0
     snap = rec.snapshot()
     for node, leg in enumerate(LEGS):
         rows = snap.imu[leg]
@@ -393,7 +402,7 @@ def test_smaller_capacity_overwritten_counter_exact():
     cfg = RecorderConfig(seconds=20, imu_hz=400, lowstate_hz=500, headroom=1.0,
                          capacity_overrides={"imu/RR": 7919})
     rec = Recorder(cfg)
-    _produce_60s(rec, n_imu, n_ls)
+    assert _produce_60s(rec, n_imu, n_ls) > 0
     snap = rec.snapshot()
     for node, leg in enumerate(LEGS):
         cap = cfg.capacity(f"imu/{leg}")

@@ -13,6 +13,7 @@ from calib.joints import (
     model_indices,
     model_to_sdk,
 )
+from calib.kinematics import LegKinematics
 from sim.effects import ActuationLatency, Effect, MotorStrength
 from sim.go2 import (
     Go2BatchSim,
@@ -88,7 +89,6 @@ def test_joint_and_actuator_order_is_model_order(free_model):
 
 
 def test_foot_sites_match_leg_kinematics():
-    kin_mod = pytest.importorskip("calib.kinematics")
     sim = Go2Sim(SimConfig(base="fixed"))
     rng = np.random.default_rng(1)
     q = stand_pose() + rng.uniform(-0.3, 0.3, 12)
@@ -96,7 +96,7 @@ def test_foot_sites_match_leg_kinematics():
     r = sim.base_rotation
     feet_b = (sim.foot_positions - sim.base_pos) @ r
     for k, leg in enumerate(MODEL_LEGS):
-        kin = kin_mod.LegKinematics.from_urdf(leg=leg)
+        kin = LegKinematics.from_urdf(leg=leg)
         np.testing.assert_allclose(feet_b[k], kin.foot_position(q[model_indices(leg)]), atol=1e-9)
         rot = sim.data.site_xmat[sim.model.site(f"{leg}_imu").id].reshape(3, 3)
         np.testing.assert_allclose(r.T @ rot, kin.foot_rotation(q[model_indices(leg)]), atol=1e-9)
@@ -193,12 +193,7 @@ def test_mocap_base_is_exact_and_foot_gyro_truth_matches_kinematics():
     sim.set_base_trajectory(traj)
     sim.reset()
     q0 = stand_pose()
-    kin_mod = None
-    try:
-        import calib.kinematics as kin_mod
-    except ImportError:  # pragma: no cover - written concurrently
-        pass
-    kins = {leg: kin_mod.LegKinematics.from_urdf(leg=leg) for leg in MODEL_LEGS} if kin_mod else {}
+    kins = {leg: LegKinematics.from_urdf(leg=leg) for leg in MODEL_LEGS}
     worst_kin = worst_chain = 0.0
     for k in range(60):
         qd = q0 + 0.3 * np.sin(2 * np.pi * 1.5 * sim.time + np.arange(12))
@@ -213,9 +208,8 @@ def test_mocap_base_is_exact_and_foot_gyro_truth_matches_kinematics():
             i = model_indices(leg)
             w = sim.foot_angular_velocity(leg)
             worst_chain = max(worst_chain, np.abs(w - _omega_chain(q[i], dq[i], wb)).max())
-            if kins:
-                wk = kins[leg].foot_angular_velocity(q[i], dq[i], wb)
-                worst_kin = max(worst_kin, np.abs(w - wk).max())
+            wk = kins[leg].foot_angular_velocity(q[i], dq[i], wb)
+            worst_kin = max(worst_kin, np.abs(w - wk).max())
             # MuJoCo's own velocity of the calf body, in the calf frame
             v6 = np.zeros(6)
             mujoco.mj_objectVelocity(sim.model, sim.data, mujoco.mjtObj.mjOBJ_XBODY,
