@@ -218,7 +218,7 @@ class EnvConfig:
     # the evaluation's failure conditions also end the episode: a thigh, calf or body on the
     # ground, or the lifted foot down during hold / excitation
     terminate_on_contact: bool = True
-    # reference-state initialisation (policy_train.tripod_pose): this share of the resets
+    # reference-state initialisation (sim.tripod_pose): this share of the resets
     # starts in a level, statically balanced tripod, in the schedule's hold phase
     p_reference_start: float = 0.3
     reference_margin_m: float = 0.05  # centre of mass inside the support triangle

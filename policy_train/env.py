@@ -43,7 +43,7 @@ from deploy.tracking_adapter import TrackingAdapter
 from policy_train.config import OBS_NOISE, EnvConfig
 from policy_train.model import TrainModel
 from policy_train.rewards import compute_rewards
-from policy_train.tripod_pose import tripod_pose
+from sim.tripod_pose import tripod_pose
 
 __all__ = ["LIFT_VALUES", "OBS_NOISE", "PRIV_TERMS", "PlanPool", "TripodEnv", "noise_amplitude"]
 
@@ -253,11 +253,12 @@ class TripodEnv:
         N = self.N
         z = np.zeros
         self.target = z((N, 12))
-        # targets of the previous policy steps, newest first: what a motor still runs on while
-        # the latest target is in flight (latency_steps up to this many policy steps)
+        # the motor commands (ctrl, kp, kd) of the last physics steps, newest first: a motor runs
+        # on the one issued ``latency`` steps ago. The whole command is delayed, the lifted
+        # leg's schedule too, as deploy's LowCmd frames are (the schedule once bypassed it)
         cfg = self.cfg
-        depth = max(1, -(-cfg.dr.latency_steps[1] // cfg.decimation)) if cfg.dr.enabled else 1
-        self.past_targets = z((N, depth, 12))
+        depth = cfg.dr.latency_steps[1] + 1 if cfg.dr.enabled else 1
+        self.cmd_hist = z((N, depth, 3, 12))
         self.actions = z((N, 12))          # raw, SDK order
         self.prev_actions = z((N, 12))
         self.last_qvel = z((N, 12))
@@ -344,7 +345,6 @@ class TripodEnv:
         self.qvel[ids] = 0.0
         self.ctrl[ids] = q
         self.target[ids] = q
-        self.past_targets[ids] = np.broadcast_to(q, (n, 12))[:, None]
         self.actions[ids] = 0.0
         self.prev_actions[ids] = 0.0
         self.last_qvel[ids] = 0.0
@@ -366,6 +366,13 @@ class TripodEnv:
             self.friction[ids] = 0.8
             self.push_timer[ids] = np.inf
         self._fric[np.ix_(ids, self._feet_geoms, [0])] = self.friction[ids, None, None]
+        # before the reset the motors held the reset pose with the env's own gains
+        self.cmd_hist[ids, :, 0] = np.broadcast_to(q, (n, 12))[:, None]
+        self.cmd_hist[ids, :, 1] = self._kp * (self.kp_s[ids] * self.strength[ids])[:, None, None]
+        self.cmd_hist[ids, :, 2] = self._kd * (self.kd_s[ids] * self.strength[ids])[:, None, None]
+        self.gainprm[ids, :, 0] = self.cmd_hist[ids, 0, 1]
+        self.biasprm[ids, :, 1] = -self.cmd_hist[ids, 0, 1]
+        self.biasprm[ids, :, 2] = -self.cmd_hist[ids, 0, 2]
         self._sample_commands(ids)
         if self.ref_poses:
             ref = rng.random(n) < self.cfg.p_reference_start
@@ -409,8 +416,13 @@ class TripodEnv:
         self.qpos[ids] = qp
         self.qvel[ids] = 0.0
         self.target[ids] = tg
-        self.past_targets[ids] = tg[:, None]
         self.ctrl[ids] = tg
+        self.cmd_hist[ids, :, 0] = tg[:, None]
+        # in the hold the lifted leg was on the schedule's gains (tg holds it there statically)
+        hold, lj = ids[~sh][:, None], 3 * legs[~sh][:, None] + np.arange(3)
+        st, sd = (self.strength[hold] * g[hold] for g in (self.kp_s, self.kd_s))
+        self.cmd_hist[hold, :, 1, lj] = (self.cfg.lift_kp * st)[:, :, None]
+        self.cmd_hist[hold, :, 2, lj] = (self.cfg.lift_kd * sd)[:, :, None]
         d = self.lift_dur[ids]
         self.lift_t[ids] = np.where(sh, alpha[:, 0] * d[:, 0],
                                     d[:, 0] + d[:, 1] + rng.uniform(0.0, 1.0, n) * d[:, 2])
@@ -451,6 +463,19 @@ class TripodEnv:
         self.phase[ids] = np.where(lifted, 0, 5)
 
     # ------------------------------------------------------------------ lifted leg
+    def _plan(self, act: np.ndarray, t: np.ndarray):
+        """(q_des, dq_des (n, 3), phase (n,)) of the lifted legs of envs ``act`` at their lift
+        times ``t`` (s): the schedule's plan, nothing latched or measured."""
+        d = self.lift_dur[act]
+        k = self.lift_plan[act]
+        te = t - d[:, :3].sum(1)
+        q_exc, dq_exc = self.pool.sample(k, te)
+        q0 = self.pool.q0[k]
+        hold = ~self.lift_excite[act]
+        q_exc = np.where(hold[:, None], q0, q_exc)
+        dq_exc = np.where(hold[:, None], 0.0, dq_exc)
+        return blend_targets(t, d, self.lift_q_start[act], q0, q_exc, dq_exc)
+
     def _lift_targets(self, t: np.ndarray, tick: bool = False):
         """(ids, joint idx (n, 3), q_des, dq_des, tau (n, 3) N m or None, phase) of envs whose
         lifted leg is overridden; tau is the feed-forward torque (``cfg.lift_feedforward``,
@@ -466,14 +491,10 @@ class TripodEnv:
             jl = 7 + 3 * self.lift_leg[latch][:, None] + np.arange(3)
             self.lift_q_start[latch] = self.qpos[latch[:, None], jl]
             self.lift_latched[latch] = True
-        k = self.lift_plan[act]
+        qd, dqd, ph = self._plan(act, t[act])
+        k, q0 = self.lift_plan[act], self.pool.q0[self.lift_plan[act]]
         te = t[act] - d[:, :3].sum(1)
-        q_exc, dq_exc = self.pool.sample(k, te)
-        q0 = self.pool.q0[k]
         hold = ~self.lift_excite[act]
-        q_exc = np.where(hold[:, None], q0, q_exc)
-        dq_exc = np.where(hold[:, None], 0.0, dq_exc)
-        qd, dqd, ph = blend_targets(t[act], d, self.lift_q_start[act], q0, q_exc, dq_exc)
         jidx = 3 * self.lift_leg[act][:, None] + np.arange(3)
         tau = None
         if self.cfg.lift_feedforward or self.adapter is not None:
@@ -518,8 +539,6 @@ class TripodEnv:
         self.prev_actions[:] = self.actions
         self.actions[:] = a
         a_m = sdk_to_model(np.clip(a, -cfg.action_clip, cfg.action_clip))
-        self.past_targets[:, 1:] = self.past_targets[:, :-1]
-        self.past_targets[:, 0] = self.target
         self.target[:] = np.clip(self.target + cfg.action_scale * a_m, self.soft_lo, self.soft_hi)
         kp = self._kp * (self.kp_s * self.strength)[:, None]
         kd = self._kd * (self.kd_s * self.strength)[:, None]
@@ -531,14 +550,12 @@ class TripodEnv:
         sd = self.sensordata
         tm = self.tm
         last = None
+        rows = np.arange(self.N)
         for s in range(cfg.decimation):
             if self.actuation_frames is not None:
                 self._capture_actuation_frames(s)
-            # the newest target issued at least `latency` physics steps ago
-            back = np.maximum(0, -((s - self.latency) // cfg.decimation))
+            # the command issued now; the motors get the one issued `latency` steps ago
             ctrl = self.target.copy()
-            late = np.flatnonzero(back > 0)
-            ctrl[late] = self.past_targets[late, back[late] - 1]
             kp_s, kd_s = kp.copy(), kd.copy()
             t = self.lift_t + s * cfg.physics_dt
             act, jidx, qd, dqd, tau, ph = self._lift_targets(t, tick=s == 0)
@@ -551,22 +568,29 @@ class TripodEnv:
                     kl, dl = cfg.lift_kp * st, cfg.lift_kd * self.kd_s[ai, None] * self.strength[ai, None]
                     kp_s[ai[:, None], ji] = kl
                     kd_s[ai[:, None], ji] = dl
-                    ctrl[ai[:, None], ji] = qd[on] + (cfg.lift_kd / cfg.lift_kp) * dqd[on]
+                    # kp (ctrl - q) - kd dq with the drawn gains: kl (qd - q) + dl (dqd - dq)
+                    ctrl[ai[:, None], ji] = qd[on] + (dl / kl) * dqd[on]
                     if tau is not None:
                         # the actuator is kp (ctrl - q) - kd dq: tau enters through ctrl,
                         # scaled by the motor strength as the PD law is
                         ctrl[ai[:, None], ji] += tau[on] / (cfg.lift_kp * self.kp_s[ai, None])
                     if s == cfg.decimation - 1:
-                        last = (ai, ji, qd[on])
+                        last = (ai, ji)
                 done = ph == 5
                 if np.any(done):  # schedule over: back to the policy, lift command cleared
+                    # as deploy, the policy's target restarts where the leg is before anything
+                    # is commanded (its actions during the lift moved a target nobody used)
+                    ad, jd = act[done][:, None], jidx[done]
                     self.lift_leg[act[done]] = -1
-                    self.target[act[done][:, None], jidx[done]] = self.qpos[
-                        act[done][:, None], 7 + jidx[done]]
-            self.ctrl[:] = ctrl
-            self.gainprm[:, :, 0] = kp_s
-            self.biasprm[:, :, 1] = -kp_s
-            self.biasprm[:, :, 2] = -kd_s
+                    self.target[ad, jd] = self.qpos[ad, 7 + jd]
+                    ctrl[ad, jd] = self.target[ad, jd]
+            self.cmd_hist[:, 1:] = self.cmd_hist[:, :-1]
+            self.cmd_hist[:, 0, 0], self.cmd_hist[:, 0, 1], self.cmd_hist[:, 0, 2] = ctrl, kp_s, kd_s
+            applied = self.cmd_hist[rows, self.latency]
+            self.ctrl[:] = applied[:, 0]
+            self.gainprm[:, :, 0] = applied[:, 1]
+            self.biasprm[:, :, 1] = -applied[:, 1]
+            self.biasprm[:, :, 2] = -applied[:, 2]
             self.batch.step(nstep=1)
             fc = sd[:, tm.foot_contact] > 0
             self.foot_touch |= fc
@@ -576,10 +600,12 @@ class TripodEnv:
             ll = self.lift_leg
             held = (ll >= 0) & ((self.phase == 2) | (self.phase == 3))
             lift_touch |= held & fc[np.arange(self.N), np.maximum(ll, 0)]
-        # lifted-leg tracking error after the last substep, against the target it was given
+        # lifted-leg tracking error after the last substep, against the plan at that instant
+        # (the target of the substep's start led it by a physics step: 90 % of the figure)
         self.lift_q_des[:] = np.nan
         if last is not None:
-            ai, ji, qd_last = last
+            ai, ji = last
+            qd_last = self._plan(ai, self.lift_t[ai] + cfg.decimation * cfg.physics_dt)[0]
             self.lift_err[ai] = self.qpos[ai[:, None], 7 + ji] - qd_last
             self.lift_q_des[ai] = qd_last
         self.lift_t += self.dt

@@ -21,15 +21,25 @@ the same way.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.joints import MODEL_LEGS, STAND_POSE_LEG, check_leg, full_pose, model_to_sdk
-from calib.motions import Motion
+from calib.excitation import TRIPOD_LIFT_POSE_LEG
+from calib.joints import (
+    MODEL_LEGS,
+    STAND_POSE_LEG,
+    check_leg,
+    full_pose,
+    model_to_sdk,
+    pose_for_leg,
+)
+from calib.motions import Motion, tripod_pose, wave_motion
 from sim.calibration_run import TRACKING_KD, TRACKING_KP, MotionRun
 from sim.go2 import Go2Sim, SimConfig, build_model_for
 from sim.sensors import BodyImuModel, EncoderModel
+from sim.tripod_pose import tripod_pose as static_tripod
 
 __all__ = [
     "FALL_HEIGHT",
@@ -38,6 +48,7 @@ __all__ = [
     "RunHealth",
     "RunRecorder",
     "free_base_sim",
+    "naive_wave_free",
     "run_motion_free",
 ]
 
@@ -45,6 +56,12 @@ FALL_TILT = 1.0
 """Base tilt beyond which the robot counts as fallen, rad (the tripod training's threshold)."""
 FALL_HEIGHT = 0.12
 """Base height under which the robot counts as fallen, m (the tripod training's threshold)."""
+WAVE_SHIFT_S = 2.0
+"""s, the naive wave's move of the body over the three other feet (the policy's front-lift
+shift)."""
+WAVE_MARGIN = 0.05
+"""m, where that move puts the centre of mass inside the support triangle (the training's
+reference stances')."""
 
 
 @dataclass
@@ -220,22 +237,24 @@ def run_motion_free(
     kd: float = TRACKING_KD,
     encoder: EncoderModel | None = None,
     body_imu: BodyImuModel | None = None,
+    via: tuple[tuple[np.ndarray, float], ...] = (),
     progress=None,
 ) -> tuple[MotionRun, RunHealth]:
     """Play ``motion``'s joint trajectory open-loop on the free-base Go2 standing on the floor.
 
     The prescribed base of ``motion`` is ignored (nothing holds the base). The robot starts in
-    the stand pose, holds it ``settle_s`` s, blends to ``motion.q[0]`` over ``blend_s`` s
-    (skipped when the pose is already there), then plays the motion (PD ``kp`` N m/rad, ``kd``
-    N m s/rad, velocity feed-forward, every physics step of ``timestep`` s). lifted_leg: the leg
-    the motion keeps in the air (wave), watched for touchdowns. Returns the recorded
+    the stand pose, holds it ``settle_s`` s, blends through each ``via`` pose ((12,) model
+    order, rad; quintic over its seconds), then to ``motion.q[0]`` over ``blend_s`` s (skipped
+    when the pose is already there), then plays the motion (PD ``kp`` N m/rad, ``kd`` N m s/rad,
+    velocity feed-forward, every physics step of ``timestep`` s). lifted_leg: the leg the
+    motion keeps in the air (wave), watched for touchdowns. Returns the recorded
     :class:`MotionRun` (the motion part only, stamped in sim time) and the :class:`RunHealth`
     over it. progress(fraction): optional, about 20 calls.
     """
     if record_every < 1:
         raise ValueError(f"record_every must be >= 1, got {record_every}")
-    if not (settle_s >= 0 and blend_s >= 0):
-        raise ValueError("settle_s and blend_s must be >= 0 s")
+    if not (settle_s >= 0 and blend_s >= 0 and all(v[1] > 0 for v in via)):
+        raise ValueError("settle_s and blend_s must be >= 0 s, via durations > 0 s")
     stand = full_pose(STAND_POSE_LEG, order="model")
     sim = free_base_sim(timestep, stand)
     zeros = np.zeros(12)
@@ -243,13 +262,16 @@ def run_motion_free(
 
     sim.set_command(stand, zeros, kp_v, kd_v, zeros)
     sim.run(round(settle_s / timestep))
-    q_first = motion.q[0]
-    nb = round(blend_s / timestep) if np.max(np.abs(q_first - stand)) > 1e-6 else 0
-    for k in range(nb):
-        w, dw = _quintic(np.array((k + 1) / nb))
-        sim.set_command(stand + w * (q_first - stand), dw / blend_s * (q_first - stand),
-                        kp_v, kd_v, zeros)
-        sim.step()
+    here = stand
+    for pose, secs in (*((np.asarray(p, float), float(s)) for p, s in via),
+                       (motion.q[0], float(blend_s))):
+        nb = round(secs / timestep) if np.max(np.abs(pose - here)) > 1e-6 else 0
+        for k in range(nb):
+            w, dw = _quintic(np.array((k + 1) / nb))
+            sim.set_command(here + w * (pose - here), dw / secs * (pose - here),
+                            kp_v, kd_v, zeros)
+            sim.step()
+        here = pose
 
     tm = motion.t - motion.t[0]
     n = int(np.floor(tm[-1] / timestep + 1e-9))
@@ -273,3 +295,35 @@ def run_motion_free(
     if progress is not None:
         progress(1.0)
     return rec.finish(motion.name, encoder, body_imu), health.result()
+
+
+def naive_wave_free(leg: str, duration: float, seed: int = 0, rate: float = 200.0,
+                    kp: float = TRACKING_KP, timestep: float = 0.001
+                    ) -> tuple[Motion, tuple[tuple[np.ndarray, float], ...]]:
+    """The naive single-foot waving on the free base: ``(motion, via)`` for
+    :func:`run_motion_free` (``lifted_leg=leg``).
+
+    Open loop, as the paper's baseline, but it does not start by tipping over: blended straight
+    from the stand to the lifted pose, the robot tipped 52° by the end of the 1 s lift and lay on
+    its back for the whole record (which the free-base table then scored as a calibration). So,
+    as anyone lifting a standing robot's leg by hand would, the body first moves over the three
+    other feet (``via``: :data:`WAVE_SHIFT_S` s to the static stance with the centre of mass
+    :data:`WAVE_MARGIN` m inside their triangle, the foot still down, :mod:`sim.tripod_pose`),
+    the leg then rises to the wave's lifted pose (``run_motion_free``'s blend) with the stance
+    legs' targets holding the static load at ``kp``, and waves with
+    :func:`calib.motions.wave_motion`'s joint trajectory (seed ``seed``, ``duration`` s).
+    Nothing corrects the body's motion as it waves.
+    """
+    leg = check_leg(leg)
+    li = MODEL_LEGS.index(leg)
+    stand = full_pose(STAND_POSE_LEG, order="model")
+    sim = free_base_sim(timestep, stand)
+    height = float(sim.base_pos[2])
+    q_lift = pose_for_leg(leg, TRIPOD_LIFT_POSE_LEG)
+    shift = static_tripod(sim.model, li, stand, q_lift, height, WAVE_MARGIN, kp, kp,
+                          lifted=False)
+    lifted = static_tripod(sim.model, li, stand, q_lift, height, WAVE_MARGIN, kp, kp)
+    wave = wave_motion(leg, duration, rate, seed)
+    # the wave's swing about its own tripod pose, played about the static stance's targets
+    q = lifted.target + (wave.q - tripod_pose(leg))
+    return dataclasses.replace(wave, q=q), ((shift.target, WAVE_SHIFT_S),)

@@ -43,7 +43,7 @@ from calib.metrics import euler_rotation_error_deg, geodesic_error_deg
 from calib.motions import a2i_motion, spin_motion, walk_motion, wave_motion
 from calib.solver import CalibrationRefused, SolverConfig, solve
 from sim.calibration_run import MotionRun, run_motion
-from sim.free_base_run import RunHealth, run_motion_free
+from sim.free_base_run import RunHealth, naive_wave_free, run_motion_free
 from sim.sensors import PAPER_GYRO_NOISE_DEG, random_mounting
 
 MOTIONS = ("walk", "spin", "wave", "a2i")
@@ -240,14 +240,24 @@ def _free_job(args) -> tuple[list[Table1Row], list[FreeRun]]:
         run, health = a2i_run(leg)
         if run is None:
             raise RuntimeError(f"the A2I run of {leg} was called off: {health.aborted}")
+        if health.fell or health.lifted_foot_touched or health.body_contacts:
+            raise RuntimeError(f"the A2I run of {leg} did not hold the tripod (fell "
+                               f"{health.fell}, lifted foot down {health.lifted_foot_touched}, "
+                               f"other bodies on the floor {list(health.body_contacts)}): the "
+                               "table would score a failed calibration")
         rows = [r for s in seeds for r in score_run(run, motion, [leg], noises, s)]
         return rows, [FreeRun(motion, leg, None, health)]
     scored = legs if leg is None else (leg,)
     duration = max(record_s[g] for g in scored)
-    run, health = run_motion_free(_make_motion(motion, seed, leg, duration),
-                                  lifted_leg=leg if motion == "wave" else None)
-    return (score_run(run, motion, scored, noises, seed, record_s),
-            [FreeRun(motion, leg, seed, health)])
+    if motion == "wave":
+        wave, via = naive_wave_free(leg, duration, seed)
+        run, health = run_motion_free(wave, lifted_leg=leg, via=via)
+    else:
+        run, health = run_motion_free(_make_motion(motion, seed, leg, duration))
+    # a robot that fell records no calibration anyone would keep (the naive wave once lay on
+    # its back, rocking, and scored well): its run is listed in the health table, not scored
+    rows = [] if health.fell else score_run(run, motion, scored, noises, seed, record_s)
+    return rows, [FreeRun(motion, leg, seed, health)]
 
 
 def run_table1_free(a2i_run, record_s, seeds=(0, 1, 2), legs=LEGS,
@@ -523,9 +533,13 @@ def render_free_section(table: FreeTable) -> str:
          "command; the excitation phase is what is recorded and scored (it does not depend on "
          "the seed: one run per leg, scored with each seed's mountings). *walk*, *spin*: the "
          "gaits' joint trajectories played open-loop (PD kp 60, kd 2, velocity feed-forward) "
-         "after 1 s of standing. *wave*: the naive single-foot waving: from the stand pose, "
-         "the leg is lifted (1 s blend) and waved with the wave motion's joint trajectory, no "
-         "balance controller. " + _record_sentence(table.record_s)),
+         "after 1 s of standing. *wave*: the naive single-foot waving, open loop: from the "
+         "stand pose the body is moved over the three other feet (2 s, to the static stance "
+         "with the centre of mass 5 cm inside their triangle, `sim/tripod_pose.py`), the leg is "
+         "lifted (1 s) and waved with the wave motion's joint trajectory; nothing corrects the "
+         "body as it waves (lifted without the shift, the robot tipped over at the lift). A "
+         "run in which the robot fell is listed below and not scored: a record of a fallen "
+         "robot is no calibration. " + _record_sentence(table.record_s)),
         "",
         (f"**Did the policy's A²I stay upright?** {len(pol)} policy runs: max tilt "
          f"{tilt:.1f}°; the lifted foot touched the floor during hold or excitation in "

@@ -1,9 +1,14 @@
-"""Static, level tripod stances of the Go2: reference states for the training resets.
+"""Static, level tripod stances of the Go2, for whatever must stand on three legs without a
+balance controller's help.
 
-PPO that starts every episode on four legs first finds the cheap way to stand on three: lean
-the body over the support triangle (v1 leaned 15-35 deg). Starting a share of the episodes in
-a level tripod that is already in static equilibrium (reference-state initialisation, as in
-DeepMimic) shows the policy the state it should hold from the first iteration.
+* Reference states for the tripod training's resets (``policy_train.env``): PPO that starts
+  every episode on four legs first finds the cheap way to stand on three: lean the body over
+  the support triangle (v1 leaned 15-35 deg). Starting a share of the episodes in a level
+  tripod that is already in static equilibrium (reference-state initialisation, as in
+  DeepMimic) shows the policy the state it should hold from the first iteration.
+* The naive single-foot waving on a free base (``sim.free_base_run.naive_wave_free``): open
+  loop, it first moves the body over the three other feet, as anyone lifting a leg of a
+  standing robot by hand would, instead of tipping over at the lift.
 
 One stance per lifted leg, on flat ground, base level at ``height`` and yaw 0:
 

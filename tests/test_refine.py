@@ -93,9 +93,10 @@ def test_candidates_play_the_same_episodes():
     zero = (np.zeros((12, 5)), np.zeros(12))
     drift = (np.zeros((12, 5)), np.full(12, 0.02))
     rows = paired_rollouts(meta, actor, res, [zero, drift, zero], ("FL",), 2, seed=5)
-    # equal but for the float rounding of a row's place in the batch's matrix products
+    # equal but for the float rounding of a row's place in the batch's matrix products, which
+    # the contacts amplify over the 20 s (1e-6 rad at 4 s, 6e-3 rad by 17 s on these draws)
     a, b, c = (r["FL"]["rate"] for r in rows)
-    assert abs(c - a) < 1e-3 * a and abs(b - a) > 10 * abs(c - a), (a, b, c)
+    assert abs(c - a) < 1e-2 * a and abs(b - a) > 10 * abs(c - a), (a, b, c)
     assert 0 < rows[0]["FL"]["rate"] < 1 and rows[0]["FL"]["track"] < 0.05
     assert res.group is None
 
@@ -183,9 +184,11 @@ def test_refining_a_derived_policy_keeps_its_deploy_settings(tmp_path):
     front lifts' 2 s shift, the tracking adapter): refined further, the rollouts play and the
     new JSON keeps v26's, not v21's."""
     v26 = V21.with_name("tripod_go2_v26.onnx")
-    _, json_path = refine(v26, tmp_path / "r", 0, RefineConfig(), tmp_path / "s.json",
-                          log=lambda s: None)
+    _, json_path = refine(v26, tmp_path / "r", 1, RefineConfig(pairs=1, episodes=1),
+                          tmp_path / "s.json", log=lambda s: None)
     src, new = (json.loads(p.with_suffix(".json").read_text()) for p in (v26, json_path))
+    # one generation played on top of v26's own
+    assert len(new["refined_from"]["generations"]) == len(src["refined_from"]["generations"]) + 1
     for key in ("kp", "kd", "lift_schedule"):
         assert new[key] == src[key], key
     assert new["refined_from"]["policy"] == V21.name

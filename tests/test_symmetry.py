@@ -47,7 +47,7 @@ def _set_pair(env, rng):
     env.qpos[1], env.qvel[1] = mp, mv
     env.target[0] = q
     env.target[1] = mp[7:19]
-    env.past_targets[:] = env.target[:, None]
+    env.cmd_hist[:, :, 0] = env.target[:, None]
     env.ctrl[:] = env.target
     env.batch.forward(np.arange(2))
     env._compute_state()

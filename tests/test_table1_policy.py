@@ -18,7 +18,7 @@ from calib.kinematics import LegKinematics
 from calib.motions import walk_motion, wave_motion
 from cli.calib import main
 from policy_train.policy_motion import load_policy, run_policy_a2i
-from sim.free_base_run import RunHealth, run_motion_free
+from sim.free_base_run import RunHealth, naive_wave_free, run_motion_free
 from sim.table1 import (
     FreeRun,
     FreeTable,
@@ -146,6 +146,40 @@ def test_naive_wave_watches_the_lifted_foot():
     assert np.isfinite(health.lifted_foot_min_z)
     with pytest.raises(ValueError):
         run_motion_free(wave_motion("RL", 3.0, 200.0, 0, ramp=0.5), record_every=0)
+
+
+def test_the_naive_wave_shifts_its_weight_first_and_stays_up():
+    """Blended straight from the stand to the lifted pose the robot tipped over at the lift and
+    the table scored it lying on its back; the naive wave now moves the body over the three
+    other feet first (open loop), lifts and waves without falling."""
+    _, fell = run_motion_free(wave_motion("FL", 3.0, 200.0, 0, ramp=0.5),
+                              lifted_leg="FL", settle_s=0.2)
+    assert fell.fell
+    wave, via = naive_wave_free("FL", 3.0, seed=0)
+    assert len(via) == 1 and via[0][1] == 2.0
+    # wave_motion's trajectory about the static stance's targets: a constant offset, which
+    # moves the stance legs (the body's shift) and not the lifted leg's swing
+    moved = wave.q - wave_motion("FL", 3.0, 200.0, 0).q
+    np.testing.assert_allclose(moved, np.tile(moved[0], (len(moved), 1)), atol=1e-12)
+    stance = [j for j in range(12) if j not in model_indices("FL")]
+    assert np.abs(moved[0, stance]).max() > 0.02
+    run, health = run_motion_free(wave, lifted_leg="FL", via=via, settle_s=0.2)
+    assert not health.fell and not health.lifted_foot_touched and not health.body_contacts
+    assert health.max_tilt_deg < 5.0
+    assert run.t[0] == pytest.approx(0.2 + 2.0 + 1.0 + 0.002, abs=1e-6)
+
+
+def test_a_fallen_baseline_run_is_listed_not_scored(monkeypatch):
+    import sim.table1 as t1
+
+    fallen = RunHealth(170.0, 160.0, 0.07, 0.07, ("base",), "RL", True, 0.01, True, 3.0)
+    monkeypatch.setattr(t1, "run_motion_free", lambda *a, **k: (None, fallen))
+    rows, runs = t1._free_job(("wave", 0, "RL", ("RL",), (0.03,), (0,), None, {"RL": 3.0}))
+    assert rows == [] and runs == [FreeRun("wave", "RL", 0, fallen)]
+    # and an A2I run that did not hold the tripod stops the table instead of being scored
+    with pytest.raises(RuntimeError, match="did not hold the tripod"):
+        t1._free_job(("a2i", None, "RL", ("RL",), (0.03,), (0,), lambda leg: ("run", fallen),
+                      {"RL": 3.0}))
 
 
 def test_missing_policy_is_one_line_error(tmp_path, capsys):

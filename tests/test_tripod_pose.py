@@ -1,4 +1,4 @@
-"""Level tripod reference stances (policy_train.tripod_pose): geometry and static equilibrium."""
+"""Level tripod reference stances (sim.tripod_pose): geometry and static equilibrium."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ mujoco = pytest.importorskip("mujoco")
 from calib.excitation import TRIPOD_LIFT_POSE_LEG
 from calib.joints import MODEL_LEGS, default_crouch, pose_for_leg
 from policy_train.model import TrainModel
-from policy_train.tripod_pose import FOOT_RADIUS, support_point, tripod_pose
+from sim.tripod_pose import FOOT_RADIUS, support_point, tripod_pose
 
 
 @pytest.fixture(scope="module")
