@@ -58,6 +58,9 @@ from calib.joints import VELOCITY_LIMIT, check_leg, is_front, is_left, pose_for_
 # stance feet of a robot standing at STAND_POSE_LEG (foot ~0.34 m below the hip axis), and
 # directly under the hip, so the lifted foot is clearly off the ground and away from the trunk.
 TRIPOD_LIFT_POSE_LEG = np.array([0.0, 1.1, -2.3])
+MAX_PLAN_KAPPA = 1.02
+"""Most kappa(Sigma_FF) a plan may reach and still be written or played (the paper's goal is
+1; the optimiser stops at 1.00000 for every plan a policy has played)."""
 
 # Go2 leg geometry (example-robot-data URDF, checked against pinocchio in the tests), m.
 HIP_OFFSET_X = 0.1934  # base -> hip joint, +front / -rear
@@ -110,6 +113,9 @@ class ExcitationConfig:
             raise ValueError(f"periods must be an integer >= 1, got {self.periods}")
         if isinstance(self.seed, bool) or int(self.seed) != self.seed or self.seed < 0:
             raise ValueError(f"seed must be an integer >= 0, got {self.seed}")
+        # a JSON's 10.0 is the integer 10 (numpy's ranges and seeds refuse the float)
+        for name in ("n_basis", "periods", "seed"):
+            object.__setattr__(self, name, int(getattr(self, name)))
         if not (0 <= self.position_margin < 0.5):
             raise ValueError(f"position_margin must be in [0, 0.5) rad, got {self.position_margin}")
         if not (0 < self.velocity_fraction <= 1):
@@ -366,6 +372,22 @@ class ExcitationPlan:
         return {"kappa": self.steady_kappa(rate_hz),
                 "position_excess": float(max(0.0, np.max(lo - q), np.max(q - hi))),
                 "velocity_excess": float(max(0.0, np.max(np.abs(dq) - VELOCITY_LIMIT)))}
+
+    def problems(self, max_kappa: float = MAX_PLAN_KAPPA) -> list[str]:
+        """Why this plan should not be played (empty: it may): :meth:`audit`'s kappa above
+        ``max_kappa``, or a joint past its position or velocity limits between the optimiser's
+        grid points. The optimiser returns its best feasible start whatever kappa it reached
+        (2.5 at t_r 0.04 s, 40 basis functions)."""
+        audit = self.audit()
+        out = []
+        kappa = max(self.kappa, audit["kappa"])
+        if kappa > max_kappa:
+            out.append(f"the optimiser reached kappa {kappa:.4f} > {max_kappa:g}")
+        if audit["position_excess"] > 0 or audit["velocity_excess"] > 0:
+            out.append(f"the motion leaves the joint limits between the optimiser's samples "
+                       f"({audit['position_excess']:.3g} rad, {audit['velocity_excess']:.3g} "
+                       "rad/s past them)")
+        return out
 
     def to_csv(self, path, rate_hz: float = 200.0):
         """Write t, q_<LEG>_{hip,thigh,calf}, dq_<LEG>_{...} (s, rad, rad/s) atomically."""

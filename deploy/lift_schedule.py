@@ -235,7 +235,12 @@ class LiftSchedule:
         """The leg's excitation plan (optimised on first use, ~0.1-0.4 s, then cached)."""
         leg = check_leg(leg)
         if leg not in self._plans:
-            self._plans[leg] = plan_excitation(self.excitation_config(leg))
+            plan = plan_excitation(self.excitation_config(leg))
+            problems = plan.problems()
+            if problems:  # refused before a lift plays it, not found in its results
+                raise ValueError(f"the lift schedule's excitation for {leg} cannot be played: "
+                                 + "; ".join(problems))
+            self._plans[leg] = plan
         return self._plans[leg]
 
     def prepare(self, leg: str) -> None:

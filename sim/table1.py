@@ -429,13 +429,17 @@ def render_markdown(rows: list[Table1Row], seeds, elapsed_s: float | None = None
         "Produced by `a2i-calib bench` (`sim/table1.py`); seeds "
         + ", ".join(str(s) for s in seeds)
         + f"; foot IMU at {IMU_RATE:.0f} Hz, random mounting per leg and seed (any rotation, "
-        "offset within ±0.2 s); encoders at 500 Hz from 1 kHz physics.",
+        "offset within ±0.2 s); encoders at 500 Hz from 1 kHz physics. The noise levels are "
+        "the foot IMU's; the body gyro, which our pipeline uses to take the base's rotation out, "
+        "reads without noise or bias in both tables, which favours the motions that turn the "
+        "body (walk and spin) over A²I, whose body stays still.",
         "",
         ("**Base held.** In this table every motion runs with the base *held* "
         "on the motion's prescribed trajectory (walk: trot with body sway; spin: yawing at "
         "0.5 rad/s; wave and A²I: still base). The A²I motion is the anti-noise excitation "
-        "(`calib.excitation`, κ(Σ_FF) = 1 planned), played by joint PD (kp 60, kd 2) with "
-        "velocity feed-forward; CN below is of the *executed* motion. Every motion is scored "
+        "(`calib.excitation`, κ(Σ_FF) = 1 planned over its steady periods; the 1 s ramps in and "
+        "out, part of every scored record, put the whole plan's at 1.12-1.13), played by joint "
+        "PD (kp 60, kd 2) with velocity feed-forward; CN below is of the *executed* motion. Every motion is scored "
         f"on a record of the same length, {held_record_s():g} s (the A²I plan's, ramps "
         "included): the motions are compared on as much data. The free-base table, "
         "with A²I executed by the tripod policy, is the last section (`a2i-calib bench "

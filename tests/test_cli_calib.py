@@ -77,6 +77,29 @@ def test_plan_writes_trajectory_and_reports_kappa(tmp_path, capsys):
     ]
 
 
+def test_plan_reproduces_a_policys_lift(tmp_path, capsys):
+    """With the policy JSON's settings, ground clearance included, the CLI writes the plan the
+    robot's lift plays (without --ground-clearance v26's differed by up to 0.46 rad)."""
+    from pathlib import Path
+
+    from deploy.lift_schedule import LiftSchedule
+
+    meta = json.loads((Path(__file__).resolve().parents[1] / "policies"
+                       / "tripod_go2_v26.json").read_text())
+    ls = meta["lift_schedule"]
+    out = tmp_path / "fl.csv"
+    assert main(["plan", "--leg", "FL", "--offset-range", str(ls["t_r"]), "--periods",
+                 str(ls["periods"]), "--basis", str(ls["n_basis"]), "--seed", str(ls["seed"]),
+                 "--ground-clearance", str(ls["ground_clearance"]), "--out", str(out)]) == 0
+    data = np.loadtxt(out, delimiter=",", skiprows=1)
+    plan = LiftSchedule.from_metadata({**ls, "n_basis": float(ls["n_basis"])}).plan("FL")
+    np.testing.assert_allclose(data[:, 1:4], plan.positions(data[:, 0]), atol=1e-6)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as bad:  # argparse's one-line refusal
+        main(["plan", "--leg", "FL", "--ground-clearance", "-0.1", "--out", str(out)])
+    assert bad.value.code == 2
+
+
 @pytest.mark.parametrize("offset", [-0.43, 0.0123, 0.31])
 def test_solve_recovers_rotation_and_offset(tmp_path, fl_plan, offset, capsys):
     rot = Rotation.random(random_state=int(abs(offset) * 1e4)).as_matrix()
