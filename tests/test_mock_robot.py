@@ -183,16 +183,17 @@ def test_lowstate_wire_format_rate_and_joystick_in_realtime():
     try:
         assert wait_until(lambda: q.received > 0, 5.0)
         time.sleep(2.2)
-        robot.stop()
-        st = robot.stats()
-        # none lost on the way: everything it published arrives
-        assert wait_until(lambda: q.received >= st["lowstates_published"], 5.0), (q.received, st)
+        # none lost on the way: everything it had published arrives (while it runs: a stopped
+        # session drops what is still in flight)
+        sent = robot.stats()["lowstates_published"]
+        assert wait_until(lambda: q.received >= sent, 5.0), (q.received, sent)
         samples = q.drain()
         wireless = wq.drain()
+        st = robot.stats()
     finally:
         robot.stop()
         client.close()
-    assert len(samples) > 900 and len(samples) == st["lowstates_published"]
+    assert len(samples) >= sent > 900
     ticks = []
     for s in samples:
         assert len(s.payload) == 1180
