@@ -237,6 +237,7 @@ def run_policy_a2i(
     aborted = None
     abort_pending = False
     k_stop = n_total
+    tilt_sq, n_tilt = 0.0, 0  # the body's tilt over the excitation (rad^2), as the evaluation
     for k in range(n_total):
         if k >= k_stop:
             break
@@ -280,9 +281,7 @@ def run_policy_a2i(
                 model = sched_tau.at(i, g) if sched_tau is not None else zeros3
                 adapter.observe(t_lift - t_exc0, sched_q[i], sched_dq[i], sched_ddq[i],
                                 sim.q[idx_m], sim.dq[idx_m], model, applied)
-            if phase == _DONE and lift_on:
-                # hand-back: the leg's policy target restarts from where the leg is
-                runner.target[idx_s] = model_to_sdk(sim.q)[idx_s]
+            handback = phase == _DONE and lift_on
             lift_on = 0 <= phase < _DONE
             signals = {
                 "base_lin_vel": zeros3,
@@ -297,7 +296,12 @@ def run_policy_a2i(
             if disturbance is not None:
                 signals = disturbance.noisy(signals, rng)
             obs = build_observation(pb.observation, signals)
-            q_cmd = sdk_to_model(runner.step(runner.act(obs)))
+            runner.step(runner.act(obs))
+            if handback:
+                # the leg's policy target restarts from where the leg is, after this tick's
+                # action, as deploy and training do: the first command is the joints themselves
+                runner.target[idx_s] = model_to_sdk(sim.q)[idx_s]
+            q_cmd = sdk_to_model(runner.target)
             dq_cmd = np.zeros(12)
             kp_c, kd_c = kp_m.copy(), kd_m.copy()
             if aborted is None and 0 <= phase < _DONE:
@@ -339,7 +343,13 @@ def run_policy_a2i(
         if ph_next in (2, 3) and aborted is None:
             health.update(sim)
         if ph_next == _EXCITE and aborted is None and (k + 1 - n_settle) % record_every == 0:
-            rec.record(sim, q_cmd)
+            # tracking against the plan at the instant of this state (the frame held 4 ms
+            # behind it: five times the evaluation's figure on the URDF's model)
+            plan_now = q_cmd.copy()
+            plan_now[idx_m] = sched_q[min(k + 1 - k_latch, len(sched_q) - 1)]
+            rec.record(sim, plan_now)
+            tilt_sq += sim.base_tilt ** 2
+            n_tilt += 1
         if (k + 1) % 10 == 0:
             fell |= sim.base_tilt > FALL_TILT or sim.base_pos[2] < FALL_HEIGHT
         if progress is not None and k % max(1, n_total // 20) == 0:
@@ -347,7 +357,9 @@ def run_policy_a2i(
     if progress is not None:
         progress(1.0)
     h = health.result()
-    h = dataclasses.replace(h, fell=h.fell or bool(fell), aborted=aborted)
+    h = dataclasses.replace(h, fell=h.fell or bool(fell), aborted=aborted,
+                            excite_tilt_rms_deg=float(np.degrees(np.sqrt(tilt_sq / n_tilt)))
+                            if n_tilt else None)
     if aborted is not None:
         return None, h
     return rec.finish(f"a2i_{leg}", encoder, body_imu), h

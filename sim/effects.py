@@ -284,11 +284,18 @@ def _link_bodies(location: str) -> list[str]:
 class LinkMass(Effect):
     """A link heavier or lighter than the URDF: mass and inertia times ``scale`` (> 0), and the
     centre of mass shifted by ``com_shift`` (m, link frame). ``link``: ``"base"`` or a joint
-    name (``"FR_calf"`` = the link that joint moves; the calf includes the foot)."""
+    name (``"FR_calf"`` = the link that joint moves; the calf includes the foot).
+
+    ``add_kg`` (base only, with ``scale`` 1): a payload, exactly that many kg on the compiled
+    base, its centre of mass ``com_shift`` from the unloaded one. The compiled base also holds
+    the bodies fused into it (the URDF's hip rotors: 7.277 kg against the spec's 6.921), so a
+    scale of the spec's base adds 5 % less than ``scale - 1`` times the compiled mass, and a
+    spec ``ipos`` shift moves the compiled centre of mass 5 % less."""
 
     name = "link_mass"
 
-    def __init__(self, scale: float, link: str = "base", com_shift=(0.0, 0.0, 0.0)) -> None:
+    def __init__(self, scale: float, link: str = "base", com_shift=(0.0, 0.0, 0.0),
+                 add_kg: float = 0.0) -> None:
         s = float(scale)
         if not (np.isfinite(s) and s > 0.0):
             raise ValueError(f"link mass scale must be finite and > 0, got {scale!r}")
@@ -296,8 +303,14 @@ class LinkMass(Effect):
         self.bodies = _link_bodies(link)
         self.link = link
         self.com_shift = np.asarray(com_shift, dtype=float).reshape(3)
+        self.add_kg = float(add_kg)
+        if not np.isfinite(self.add_kg) or (self.add_kg and (link != "base" or s != 1.0)):
+            raise ValueError("a payload (add_kg) goes on the base, with scale 1")
 
     def modify_spec(self, spec: mujoco.MjSpec) -> None:
+        if self.add_kg or (self.link == "base" and np.any(self.com_shift)):
+            self._payload(spec)
+            return
         for n in self.bodies:
             b = spec.body(n)
             if b is None:
@@ -308,8 +321,26 @@ class LinkMass(Effect):
             b.inertia = np.asarray(b.inertia, dtype=float) * self.scale
             b.ipos = np.asarray(b.ipos, dtype=float) + self.com_shift
 
+    def _payload(self, spec: mujoco.MjSpec) -> None:
+        """Mass ``m_spec * scale + add_kg`` on the spec's base, placed so that the compiled
+        base (with whatever is fused into it) gains ``add_kg`` and moves its centre of mass by
+        ``com_shift``: M' c' = M c + (the spec base's change of m p)."""
+        fused = spec.copy().compile().body("base")
+        big_m, c = float(fused.mass[0]), np.asarray(fused.ipos, dtype=float)
+        b = spec.body("base")
+        m, p = float(b.mass), np.asarray(b.ipos, dtype=float)
+        m_new = m * self.scale + self.add_kg
+        if not m_new > 0:
+            raise ValueError(f"link mass: a payload of {self.add_kg} kg leaves the base no mass")
+        big_new = big_m + m_new - m
+        b.ipos = ((c + self.com_shift) * big_new - (c * big_m - m * p)) / m_new
+        b.inertia = np.asarray(b.inertia, dtype=float) * (m_new / m)
+        b.mass = m_new
+
     def __repr__(self) -> str:
-        return f"LinkMass({self.scale!r}, link={self.link!r}, com_shift={self.com_shift.tolist()})"
+        extra = f", add_kg={self.add_kg!r}" if self.add_kg else ""
+        return (f"LinkMass({self.scale!r}, link={self.link!r}, "
+                f"com_shift={self.com_shift.tolist()}{extra})")
 
 
 class FootFriction(Effect):

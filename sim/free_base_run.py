@@ -79,6 +79,8 @@ class RunHealth:
     (:meth:`~sim.go2.Go2Sim.calf_contact_reach`: up to 30 mm the calf's lower end, which wraps
     the top of the foot; the knee is 213 mm up). aborted: why the run's driver called its lift
     off (deploy's tip guard), None if it did not; the watch then ends where it was called off.
+    excite_tilt_rms_deg: the tilt RMS over the excitation alone, deg (a policy's run; None for
+    the others), what the evaluation reports: ``tilt_rms_deg`` also covers the hold.
     """
 
     max_tilt_deg: float
@@ -93,6 +95,7 @@ class RunHealth:
     duration_s: float
     calf_reach_mm: dict[str, float] = field(default_factory=dict)
     aborted: str | None = None
+    excite_tilt_rms_deg: float | None = None
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)

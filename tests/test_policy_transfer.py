@@ -17,7 +17,6 @@ from policy_train.cli import main
 from policy_train.config import DRConfig
 from policy_train.policy_motion import Disturbance
 from policy_train.transfer import (
-    BASE_MASS_KG,
     SCENARIOS,
     EpisodeResult,
     compare,
@@ -45,9 +44,18 @@ from sim.go2 import Go2Sim, SimConfig
 POLICY = Path(__file__).resolve().parents[1] / "policies" / "tripod_go2_v7.onnx"
 
 
-def test_base_mass_is_the_simulators():
-    sim = free_base_sim()
-    assert sim.model.body("base").mass[0] == pytest.approx(BASE_MASS_KG, abs=1e-6)
+def test_a_payload_adds_its_kilograms_and_moves_the_centre_of_mass_as_drawn():
+    """On the compiled base, which holds the bodies fused into it (the URDF's hip rotors):
+    scaling the spec's base by 1 + m / 7.277 added 0.951 m kg and moved the centre of mass 5 %
+    short of the draw."""
+    plain = free_base_sim().model.body("base")
+    for add, shift in ((4.0, (0.03, -0.02, 0.01)), (-1.0, (0.0, 0.0, 0.0))):
+        loaded = Go2Sim(SimConfig(base="free", effects=[LinkMass(1.0, "base", shift,
+                                                                  add_kg=add)])).model.body("base")
+        assert loaded.mass[0] - plain.mass[0] == pytest.approx(add, abs=1e-9)
+        np.testing.assert_allclose(loaded.ipos - plain.ipos, shift, atol=1e-9)
+    with pytest.raises(ValueError, match="payload"):
+        LinkMass(1.1, "base", add_kg=1.0)
 
 
 def test_training_scenario_draws_the_training_ranges():
@@ -56,7 +64,8 @@ def test_training_scenario_draws_the_training_ranges():
         effects, dist = SCENARIOS["training"].draw(np.random.default_rng(seed))
         kinds = {type(e): e for e in effects}
         assert set(kinds) == {LinkMass, FootFriction, MotorStrength, ActuationLatency}
-        add = (kinds[LinkMass].scale - 1.0) * BASE_MASS_KG
+        add = kinds[LinkMass].add_kg
+        assert kinds[LinkMass].scale == 1.0
         assert dr.base_mass_add[0] - 1e-9 <= add <= dr.base_mass_add[1] + 1e-9
         assert np.all(np.abs(kinds[LinkMass].com_shift) <= np.array(dr.base_com_offset) + 1e-12)
         assert dr.friction[0] <= kinds[FootFriction].mu <= dr.friction[1]
