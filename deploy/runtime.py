@@ -493,7 +493,7 @@ class DeployRunner:
             left = self._wait_deadline - time.monotonic()
             if left <= 0:
                 break
-            job.join(min(left, 0.1))
+            job.join(min(left, 0.02))  # a stop arriving meanwhile ends the wait within 20 ms
 
     def _watch_imu(self) -> None:
         """A silent foot IMU of the leg being lifted is an error (port open, no frames: wrong

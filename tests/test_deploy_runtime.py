@@ -64,8 +64,13 @@ def test_lockstep_solve_waits_its_timeout_once_not_at_every_tick(meta, tmp_path)
     for _ in range(20):  # 20 ticks of SOLVE: the wall-clock wait is spent on the first
         r._wait_solver()
     assert timeout - 0.05 < time.monotonic() - t0 < timeout + 0.5
-    r.request_stop()  # and a stop ends a wait at once
+    # a stop that arrives during a wait ends it within a poll (20 ms), not at the timeout
     r._jobs.append(Hung())
+    threading.Timer(0.05, r.request_stop).start()
+    t0 = time.monotonic()
+    r._wait_solver()
+    assert time.monotonic() - t0 > 0.04 and time.monotonic() < r._wait_deadline
+    r._jobs.append(Hung())  # and one set before the wait ends it at once
     t0 = time.monotonic()
     r._wait_solver()
     assert time.monotonic() - t0 < 0.1
