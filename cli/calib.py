@@ -267,10 +267,13 @@ def _bench_policy(args, t0: float, out: Path):
     # each leg's A2I record: the excitation phase of its policy's lift schedule
     record_s = {g: float(PolicyMeta.load(Path(p).with_suffix(".json")).schedule.durations(g)[3])
                 for g, p in per_leg.items()}
-    rows, runs = run_table1_free(
-        functools.partial(run_policy_a2i_per_leg, per_leg), record_s, seeds, legs,
-        workers=args.workers,
-        progress=lambda i, n: _say(f"  simulated {i}/{n} runs ({time.time() - t0:.0f} s)"))
+    try:
+        rows, runs = run_table1_free(
+            functools.partial(run_policy_a2i_per_leg, per_leg), record_s, seeds, legs,
+            workers=args.workers,
+            progress=lambda i, n: _say(f"  simulated {i}/{n} runs ({time.time() - t0:.0f} s)"))
+    except RuntimeError as e:  # an A2I run called off or failed: no table to score it in
+        raise _Fail(str(e).splitlines()[0]) from None
     free = FreeTable(rows, runs, seeds, " ".join(args.policy), time.time() - t0, record_s)
     write_text_atomic(_free_json(out), free.to_json())
     held_path = out.with_suffix(".json")

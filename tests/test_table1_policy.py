@@ -182,6 +182,19 @@ def test_a_fallen_baseline_run_is_listed_not_scored(monkeypatch):
                       {"RL": 3.0}))
 
 
+def test_a_failed_a2i_run_is_a_one_line_error(tmp_path, capsys, monkeypatch):
+    import sim.table1 as t1
+
+    def failed(*a, **k):
+        raise RuntimeError("the A2I run of FL did not hold the tripod (fell True, ...)")
+
+    monkeypatch.setattr(t1, "run_table1_free", failed)
+    assert main(["bench", "--policy", str(POLICY), "--legs", "FL", "--seeds", "1",
+                 "--out", str(tmp_path / "t.md")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert "did not hold the tripod" in err[-1] and not (tmp_path / "t.md").exists()
+
+
 def test_missing_policy_is_one_line_error(tmp_path, capsys):
     with pytest.raises(ValueError, match="not found"):
         load_policy(tmp_path / "none.onnx")
