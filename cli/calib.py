@@ -34,24 +34,23 @@ def _leg(s: str) -> str:
         raise argparse.ArgumentTypeError(str(e)) from None
 
 
-def _positive(s: str) -> float:
+def _number(s: str, least: float, strict: bool) -> float:
     try:
         v = float(s)
     except ValueError:
         raise argparse.ArgumentTypeError(f"not a number: {s!r}") from None
-    if not (np.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {s!r}")
+    if not (np.isfinite(v) and (v > least if strict else v >= least)):
+        need = "a positive number" if strict else f"a number >= {least:g}"
+        raise argparse.ArgumentTypeError(f"must be {need}, got {s!r}")
     return v
+
+
+def _positive(s: str) -> float:
+    return _number(s, 0.0, strict=True)
 
 
 def _nonnegative(s: str) -> float:
-    try:
-        v = float(s)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {s!r}") from None
-    if not (np.isfinite(v) and v >= 0):
-        raise argparse.ArgumentTypeError(f"must be a number >= 0, got {s!r}")
-    return v
+    return _number(s, 0.0, strict=False)
 
 
 def _say(msg: str) -> None:

@@ -585,7 +585,7 @@ class TripodEnv:
                     self.target[ad, jd] = self.qpos[ad, 7 + jd]
                     ctrl[ad, jd] = self.target[ad, jd]
             self.cmd_hist[:, 1:] = self.cmd_hist[:, :-1]
-            self.cmd_hist[:, 0, 0], self.cmd_hist[:, 0, 1], self.cmd_hist[:, 0, 2] = ctrl, kp_s, kd_s
+            self.cmd_hist[:, 0] = np.stack([ctrl, kp_s, kd_s], axis=1)
             applied = self.cmd_hist[rows, self.latency]
             self.ctrl[:] = applied[:, 0]
             self.gainprm[:, :, 0] = applied[:, 1]

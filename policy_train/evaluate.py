@@ -5,9 +5,9 @@ Per episode: the lift command at t = 0, then the JSON's schedule (shift, lift, h
 anti-noise excitation with the JSON's ``t_r`` / ``n_basis`` / ``periods``, lower) and 0.5 s
 after. Success: no fall, no contact of anything but the feet, the lifted foot never touching
 during hold and excitation. During the excitation (steady window for CN): base tilt RMS,
-base angular-rate RMS (norm), lifted-leg joint tracking RMSE (all three joints, the joints at
-the end of each policy step against the plan at that instant; the motors get the plan through
-the drawn actuation latency, as on the robot), and the condition number of the executed foot angular velocity
+base angular-rate RMS (norm), lifted-leg joint tracking RMSE (all three joints, the joints
+at the end of each policy step against the plan at that instant; the motors get the plan
+through the drawn actuation latency, as on the robot), and the condition number of the executed foot angular velocity
 (body gyro rotated into the foot frame plus the leg's relative rate, at 50 Hz). Each failed
 episode is counted by its first cause (:func:`failure_cause`) and phase, and the stance calves'
 lowest approach to the floor during the excitation is reported (``calf_clearance_mm``), with

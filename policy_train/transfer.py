@@ -33,8 +33,8 @@ longer shift, here from a stand-up on the same draws, and the episode is that se
 (``EpisodeResult.retried``); a second lift called off fails, "lift called off (tipping)", with
 a fall if the robot fell all the same. Figures over the excitation, of the successful episodes:
 base tilt RMS (deg), base angular rate RMS (rad/s, true), the lifted leg's joint tracking RMSE
-(rad, executed vs the plan at the same instant) and the CN of its true foot angular velocity over the steady
-periods (the evaluation's definitions).
+(rad, executed vs the plan at the same instant) and the CN of its true foot angular velocity
+over the steady periods (the evaluation's definitions).
 """
 
 from __future__ import annotations
@@ -76,8 +76,8 @@ class Scenario:
     simulator's own value.
 
     base_mass_add: kg on the base link, exactly, on either model (mass and inertia scaled;
-    ``LinkMass(add_kg=)``). base_com_shift: +- m per axis of the base's centre of mass. friction: foot-floor sliding friction. motor_strength: scale of
-    every motor's torque. latency_s: actuation latency, s. joint_friction: Coulomb friction, N m,
+    ``LinkMass(add_kg=)``). base_com_shift: +- m per axis of the base's centre of mass.
+    friction: foot-floor sliding friction. motor_strength: scale of every motor's torque. latency_s: actuation latency, s. joint_friction: Coulomb friction, N m,
     on every joint. joint_damping: viscous friction, N m s/rad, and armature: rotor inertia,
     kg m^2, on every joint. noise_scale: times the training's observation noise (0: none). push_vel:
     m/s of the pushes (0: none), every 4-8 s. floor_slope: rad the floor is tilted, descending

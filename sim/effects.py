@@ -287,7 +287,8 @@ class LinkMass(Effect):
     name (``"FR_calf"`` = the link that joint moves; the calf includes the foot).
 
     ``add_kg`` (base only, with ``scale`` 1): a payload, exactly that many kg on the compiled
-    base, its centre of mass ``com_shift`` from the unloaded one. The compiled base also holds
+    base. On the base, ``com_shift`` moves the compiled centre of mass by exactly that much,
+    with or without a payload. The compiled base also holds
     the bodies fused into it (the URDF's hip rotors: 7.277 kg against the spec's 6.921), so a
     scale of the spec's base adds 5 % less than ``scale - 1`` times the compiled mass, and a
     spec ``ipos`` shift moves the compiled centre of mass 5 % less."""
