@@ -27,7 +27,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -87,6 +87,8 @@ class DeployConfig:
     truth: leg -> (R_I^F, t_d) of a simulated mounting (reports errors against it).
     final_ticks: ticks the final (damping) command is repeated before the loop returns.
     keep_solver_output: keep each leg's full SolverResult after its report (memory grows).
+    solver: the solver's settings and gates; its ``max_offset`` is replaced, leg by leg, by the
+    lift schedule's ``t_r``: the range of offsets that leg's excitation was designed for.
     imu_silence_s: the lifted leg's foot IMU silent this long (s) aborts its calibration.
     max_ticks: stop after this many ticks (benchmarks); None: until the session ends.
     """
@@ -228,10 +230,17 @@ class DeployRunner:
         from calib.kinematics import LegKinematics
 
         self._kin = {}
+        self._solver_cfg = {}
         for leg in dict.fromkeys(config.legs or sorted(imu_legs)):
             if leg in self.metas:
                 sched = self.metas[leg].schedule
                 sched.prepare(leg)
+                # The paper's t_r is the range of sensor offsets the plan is designed for (its
+                # period is 8 t_r, so the correlation is unambiguous well beyond it)
+                try:
+                    self._solver_cfg[leg] = replace(config.solver, max_offset=sched.t_r)
+                except ValueError as e:
+                    raise DeployError(f"{leg}'s lift schedule t_r {sched.t_r:g} s: {e}") from None
                 # SOLVE reads the excitation back from the rings after the lowering and the
                 # stand: a shorter history would have lost its start by then
                 need = sched.plan(leg).duration + sched.lower + 5.0
@@ -302,8 +311,11 @@ class DeployRunner:
 
     def _start_solve(self, leg: str, window) -> SolveJob:
         truth = (self.cfg.truth or {}).get(leg)
+        # the solver searches +-t_r and reads that much more of the encoders on each side
+        config = self._solver_cfg.get(leg, self.cfg.solver)
         job = self._worker.submit(self.recorder, leg, window, self.time_base, self.cfg.out_dir,
-                                  kin=self._kin.get(leg), config=self.cfg.solver, truth=truth)
+                                  kin=self._kin.get(leg), config=config, truth=truth,
+                                  pad_s=config.max_offset + 0.1)
         self._jobs.append(job)
         return job
 
