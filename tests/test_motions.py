@@ -90,7 +90,7 @@ def test_wave_moves_only_the_lifted_leg(motions):
         idx = model_indices(leg)
         others = np.setdiff1d(np.arange(12), idx)
         np.testing.assert_array_equal(m.q[:, others], np.tile(m.q[0, others], (len(m.t), 1)))
-        assert np.ptp(m.q[:, idx[0]]) == 0.0  # hip still
+        assert 0.5 < np.ptp(m.q[:, idx[0]]) < 0.7  # the hip's loop, 0.3 rad each way
         assert np.ptp(m.q[:, idx[1]]) > 0.5 and np.ptp(m.q[:, idx[2]]) > 0.4
         np.testing.assert_array_equal(m.base_omega, 0.0)
 
@@ -118,7 +118,9 @@ def test_baselines_are_far_worse_conditioned_than_a2i(plans, capsys):
         base = baseline_motions(leg, 20.0, 200.0, seed=0)
         ks = {name: m.kappa(leg) for name, m in base.items()}
         for name, k in ks.items():
-            assert k > 100 * a2i, (leg, name, k)
+            assert k > 20 * a2i, (leg, name, k)
+        # the naive wave conditioned as the paper's (its CN 23-75), not a one-axis strawman
+        assert 23 < ks["wave"] < 75, (leg, ks["wave"])
         rows.append(f"{leg}: a2i {a2i:.4f}  " + "  ".join(f"{n} {k:.3g}" for n, k in ks.items()))
     with capsys.disabled():
         print("\nkappa of the relative foot angular velocity\n" + "\n".join(rows))
