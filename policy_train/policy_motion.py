@@ -24,8 +24,9 @@ The policy runs as on board (``deploy``'s TRIPOD / CALIBRATE states), on the sim
   deploy).
 
 Recorded: the excitation phase only (what deploy's SOLVE calibrates from). Watched for
-:class:`sim.free_base_run.RunHealth`: hold and excitation (tilt, lifted-foot touchdowns,
-body contacts), and the whole run for falls.
+:class:`sim.free_base_run.RunHealth`: hold and excitation (tilt, lifted-foot touchdowns), and
+the whole run for falls and for bodies other than the feet on the floor (as the evaluation
+judges a training episode).
 """
 
 from __future__ import annotations
@@ -342,6 +343,9 @@ def run_policy_a2i(
         ph_next = int((t_next >= ends - 1e-9).sum()) if t_next >= 0 else -1
         if ph_next in (2, 3) and aborted is None:
             health.update(sim)
+        elif aborted is None:
+            # a knee or thigh on the floor fails the run in any phase, as in the evaluation
+            health.watch_contacts(sim)
         if ph_next == _EXCITE and aborted is None and (k + 1 - n_settle) % record_every == 0:
             # tracking against the plan at the instant of this state (the frame held 4 ms
             # behind it: five times the evaluation's figure on the URDF's model)

@@ -25,8 +25,8 @@ of the Go2 instead of the URDF's (:mod:`sim.external_model`, e.g. MuJoCo Menager
 check, on the geometry, masses, joints and contacts a checker's own script may load. Its pages
 record the model (path and the compiled model's hash) and do not take episodes of another.
 
-An episode succeeds as the evaluation's do: no fall over the whole run, and over the hold and
-the excitation no body but a foot on the floor and the lifted foot never down
+An episode succeeds as the evaluation's do: no fall and no body but a foot on the floor over the
+whole run, and the lifted foot never down over the hold and the excitation
 (:class:`sim.free_base_run.RunHealth`). With ``max_tip`` (``--max-tip``) deploy's tip
 guard (:mod:`deploy.tip_guard`) plays as on board: a lift it calls off is lifted again with a
 longer shift, here from a stand-up on the same draws, and the episode is that second lift's
@@ -394,8 +394,9 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
         f"{model_arg}{tip_arg}` (`policy_train/transfer.py`): each episode is one calibration of one "
         "leg by the on-board runner on `sim.go2` (1 kHz, free base on the floor: the mock "
         f"robot's simulator, not the training environment) with {on_model}, and the "
-        "scenario's perturbations drawn afresh. Success: no fall, and over hold and excitation "
-        f"no body but a foot on the floor and the lifted foot never down; {guard}. Figures over "
+        "scenario's perturbations drawn afresh. Success: no fall and no body but a foot on the "
+        f"floor over the whole run, and the lifted foot never down over hold and excitation; "
+        f"{guard}. Figures over "
         "the excitation of the successful episodes, "
         "pooled over legs; the evaluation's targets: success 99 %, tilt 3 deg, rate 0.1 rad/s, "
         "tracking 0.05 rad, CN 1.2. Failures: in how many episodes each thing happened (an "

@@ -129,6 +129,16 @@ class HealthTracker:
         self._t1 = 0.0
         self._reach = np.full(4, np.nan)
 
+    def watch_contacts(self, sim: Go2Sim) -> None:
+        """Only the floor contacts of bodies other than the feet: for the parts of a run whose
+        tilt and lifted foot are not judged (a policy's shift, lift and lowering), where a
+        knee or thigh on the floor is a failure all the same."""
+        bodies = sim.body_contacts()
+        if bodies:
+            self._bodies.update(bodies)
+            if any(b.endswith("_calf") for b in bodies):
+                self._reach = np.fmax(self._reach, sim.calf_contact_reach())
+
     def update(self, sim: Go2Sim) -> None:
         tilt = sim.base_tilt
         z = float(sim.base_pos[2])
@@ -137,11 +147,7 @@ class HealthTracker:
         self._tilt_sq += tilt * tilt
         self._z_min = min(self._z_min, z)
         self._z_last = z
-        bodies = sim.body_contacts()
-        if bodies:
-            self._bodies.update(bodies)
-            if any(b.endswith("_calf") for b in bodies):
-                self._reach = np.fmax(self._reach, sim.calf_contact_reach())
+        self.watch_contacts(sim)
         if self._li is not None:
             self._touched |= bool(sim.foot_contact_forces[self._li] > 0.0)
             self._foot_min = min(self._foot_min, float(sim.foot_positions[self._li, 2]))

@@ -552,8 +552,9 @@ def render_free_section(table: FreeTable) -> str:
         (f"**Did the policy's A²I stay upright?** {len(pol)} policy runs: max tilt "
          f"{tilt:.1f}°; the lifted foot touched the floor during hold or excitation in "
          f"{n_touch}; another body than a foot touched the floor in {n_body}; fell in "
-         f"{n_fell}. Watched: the A²I runs over hold and excitation, the other motions over "
-         "the recorded motion."),
+         f"{n_fell}. Watched: the A²I runs over hold and excitation (tilt, the lifted foot) "
+         "and over the whole run (falls, other bodies), the other motions over the recorded "
+         "motion."),
         "",
         "### How the robot fared",
         "",

@@ -303,3 +303,21 @@ def test_a_lift_the_tip_guard_calls_off_gives_no_run_and_the_robot_stands():
     assert run is None
     assert "tipped" in health.aborted and "in lift" in health.aborted
     assert not health.fell and health.body_contacts == ()
+
+
+def test_a_knee_on_the_floor_before_the_hold_fails_the_run(monkeypatch):
+    """Bodies other than the feet are watched over the whole run, as the evaluation watches a
+    training episode: a thigh on the floor while the body shifts (here a simulator that reports
+    one for the first 0.1 s) is in the run's health, though tilt and the lifted foot are judged
+    over hold and excitation only."""
+    from sim.go2 import Go2Sim
+
+    if not POLICY.is_file():
+        pytest.skip("no shipped policy")
+    real = Go2Sim.body_contacts
+    monkeypatch.setattr(Go2Sim, "body_contacts",
+                        lambda self: ["RR_thigh"] if self.time < 0.1 else real(self))
+    _, health = run_policy_a2i(load_policy(POLICY), "FL", settle_s=SETTLE, periods=1,
+                               after_s=0.0)
+    assert "RR_thigh" in health.body_contacts  # (v1's rear calves brush the floor beside
+    assert not health.lifted_foot_touched      # their feet as it shifts, 20 mm from them)
