@@ -224,6 +224,7 @@ class TripodEnv:
         self.start_height = 0.022 - d.site_xpos[foot_sites, 2].min() + 0.005
 
         self._masses_nominal = m.body_mass.copy()
+        self._inertia_nominal = m.body_inertia.copy()
         self._ipos_nominal = m.body_ipos.copy()
         self._fric = b.expand("geom_friction")
         self._joint_fric = b.expand("dof_frictionloss")
@@ -306,6 +307,11 @@ class TripodEnv:
         mass[:] = self._masses_nominal * scale
         self.mass_add = self.rng.uniform(*dr.base_mass_add, size=N)
         mass[:, base] = self._masses_nominal[base] + self.mass_add
+        # a body drawn heavier or lighter keeps its density: its rotational inertia scales
+        # with its mass (a base 2 kg heavier is not 2 kg more at one point of no size)
+        nominal = self._masses_nominal
+        ratio = np.divide(mass, nominal, out=np.ones_like(mass), where=nominal > 0)
+        self.batch.expand("body_inertia")[:] = self._inertia_nominal * ratio[:, :, None]
         off = np.asarray(dr.base_com_offset)
         ipos[:, base] = self._ipos_nominal[base] + self.rng.uniform(-off, off, size=(N, 3))
         arm = self.batch.expand("dof_armature")

@@ -246,6 +246,11 @@ def test_domain_randomisation_applied(env):
     np.testing.assert_allclose(fr, env.friction)
     mass = env.batch.expanded("body_mass")[:, env.tm.base_body]
     assert np.ptp(mass) > 0.1
+    # every body keeps its density: inertia scaled as its mass (the base's 2 kg is not a point)
+    masses, inertia = env.batch.expanded("body_mass"), env.batch.expanded("body_inertia")
+    ratio = masses[:, 1:] / env._masses_nominal[1:]
+    assert np.ptp(ratio) > 0.05
+    np.testing.assert_allclose(inertia[:, 1:], env._inertia_nominal[1:] * ratio[:, :, None])
     # joint armature per robot (all 12 joints alike), inside the range; the free base has none
     arm = env.batch.expanded("dof_armature")
     lo, hi = env.cfg.dr.armature
