@@ -83,25 +83,30 @@ def test_a_record_history_shorter_than_a_lift_is_refused(meta):
                                   record_seconds=5.0), meta)
 
 
-def test_the_solve_searches_the_offsets_the_leg_s_plan_was_designed_for(tmp_path):
+class _TakeJobs:
+    """A SOLVE worker that only keeps what it is given (the real one starts with the loop)."""
+
+    def __init__(self):
+        self.kwargs = []
+
+    def submit(self, *args, **kwargs):
+        self.kwargs.append(kwargs)
+
+
+@pytest.mark.parametrize("t_r", [0.3, 0.8])
+def test_the_solve_searches_the_offsets_the_leg_s_plan_was_designed_for(tmp_path, t_r):
     # the paper's t_r is the sensor offset range the excitation is planned for: a policy whose
     # schedule plans for +-0.3 s must not be searched over the solver's default +-0.5 s, nor one
     # planned for +-0.8 s over less (offsets up to t_r would be refused at the edge)
     from deploy.hold_policy import write_hold_policy
 
-    for t_r in (0.3, 0.8):
-        sched = LiftSchedule(shift=0.2, lift=0.2, hold=0.2, lower=0.2, periods=1, t_r=t_r)
-        m = PolicyMeta.load(write_hold_policy(tmp_path / str(t_r), "hold", schedule=sched))
-        r = DeployRunner(DeployConfig(legs=["FL"], imus=[ImuPort("FL", "/dev/null")],
-                                      out_dir=tmp_path), m)
-        submitted = []
-
-        class Worker:  # the worker starts with the loop; this one only takes the job
-            def submit(self, *a, **kw):
-                submitted.append(kw)
-
-        r._worker = Worker()
-        r._start_solve("FL", (None, None))
-        assert submitted[0]["config"].max_offset == t_r
-        assert submitted[0]["config"].min_correlation == r.cfg.solver.min_correlation  # gates kept
-        assert submitted[0]["pad_s"] == pytest.approx(t_r + 0.1)
+    sched = LiftSchedule(shift=0.2, lift=0.2, hold=0.2, lower=0.2, periods=1, t_r=t_r)
+    m = PolicyMeta.load(write_hold_policy(tmp_path, "hold", schedule=sched))
+    r = DeployRunner(DeployConfig(legs=["FL"], imus=[ImuPort("FL", "/dev/null")],
+                                  out_dir=tmp_path), m)
+    r._worker = worker = _TakeJobs()
+    r._start_solve("FL", (None, None))
+    (kw,) = worker.kwargs
+    assert kw["config"].max_offset == t_r
+    assert kw["config"].min_correlation == r.cfg.solver.min_correlation  # the gates kept
+    assert kw["pad_s"] == pytest.approx(t_r + 0.1)
