@@ -294,7 +294,7 @@ def wave_motion(leg: str, duration: float = 20.0, rate: float = 200.0, seed: int
 
     The paper gives no amplitudes, only the wave's CN: 23-75 over its legs and noise levels.
     Thigh and calf alone turn the foot about one axis (kappa unbounded, 1e8 in a simulation: a
-    baseline no one would wave); the hip's 0.3 rad puts kappa at 50-53, inside the paper's range.
+    baseline no one would wave); the hip's 0.3 rad puts kappa at 48-56, inside the paper's range.
     The foot goes up and down and, less, out and in: nothing is chosen to fill the third axis."""
     leg = check_leg(leg)
     t = _times(duration, rate)

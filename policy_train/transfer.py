@@ -27,14 +27,16 @@ record the model (path and the compiled model's hash) and do not take episodes o
 
 An episode succeeds as the evaluation's do: no fall and no body but a foot on the floor over the
 whole run, and the lifted foot never down over the hold and the excitation
-(:class:`sim.free_base_run.RunHealth`). With ``max_tip`` (``--max-tip``) deploy's tip
-guard (:mod:`deploy.tip_guard`) plays as on board: a lift it calls off is lifted again with a
-longer shift, here from a stand-up on the same draws, and the episode is that second lift's
-(``EpisodeResult.retried``); a second lift called off fails, "lift called off (tipping)", with
-a fall if the robot fell all the same. Figures over the excitation, of the successful episodes:
-base tilt RMS (deg), base angular rate RMS (rad/s, true), the lifted leg's joint tracking RMSE
-(rad, executed vs the plan at the same instant) and the CN of its true foot angular velocity
-over the steady periods (the evaluation's definitions).
+(:class:`sim.free_base_run.RunHealth`). A body counts as on the floor at any contact, where the
+evaluation counts a contact force above 1 N: a calf's lower end that grazes the floor beside its
+foot as the leg leaves it (MuJoCo lists the contact, at 0 N as they part) fails here. With
+``max_tip`` (``--max-tip``) deploy's tip guard (:mod:`deploy.tip_guard`) plays as on board: a
+lift it calls off is lifted again with a longer shift, here from a stand-up on the same draws,
+and the episode is that second lift's (``EpisodeResult.retried``); a second lift called off
+fails, "lift called off (tipping)", with a fall if the robot fell all the same. Figures over the
+excitation, of the successful episodes: base tilt RMS (deg), base angular rate RMS (rad/s,
+true), the lifted leg's joint tracking RMSE (rad, executed vs the plan at the same instant) and
+the CN of its true foot angular velocity over the steady periods (the evaluation's definitions).
 """
 
 from __future__ import annotations
@@ -395,7 +397,7 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
         "leg by the on-board runner on `sim.go2` (1 kHz, free base on the floor: the mock "
         f"robot's simulator, not the training environment) with {on_model}, and the "
         "scenario's perturbations drawn afresh. Success: no fall and no body but a foot on the "
-        f"floor over the whole run, and the lifted foot never down over hold and excitation; "
+        "floor over the whole run, and the lifted foot never down over hold and excitation; "
         f"{guard}. Figures over "
         "the excitation of the successful episodes, "
         "pooled over legs; the evaluation's targets: success 99 %, tilt 3 deg, rate 0.1 rad/s, "
