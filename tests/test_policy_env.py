@@ -167,12 +167,14 @@ def test_tracking_adapter_cuts_the_lag_of_joint_friction_the_model_lacks():
     dry friction, once fitted (2 s into the excitation, faded in by 2.5 s) the lifted leg tracks
     its plan closer; the adapter's torque is off outside the excitation's envs."""
     def tracking_rms(adapt):
-        e = TripodEnv(EnvConfig(num_envs=4, plans_per_leg=1, seed=5, threads=1,
+        # 8 robots: each starts in a hold of its own length, and only some of them are 2.6 s
+        # into their excitation within these 6 s (4 gave 46 samples once inertias were drawn)
+        e = TripodEnv(EnvConfig(num_envs=8, plans_per_leg=1, seed=5, threads=1,
                                 p_reference_start=1.0, p_reference_shift=0.0, lift_adapt=adapt))
         e._joint_fric[:, 6:] = 0.5
         err = []
         for _ in range(300):
-            e.step(np.zeros((4, 12)))
+            e.step(np.zeros((8, 12)))
             te = e.lift_t - e.lift_dur[:, :3].sum(1)
             fitted = (e.phase == 3) & (te > 2.6)
             err.append(e.lift_err[fitted])
