@@ -229,18 +229,20 @@ class DeployRunner:
         # every leg's kinematics now (0.1-0.4 s each): never inside the loop, nor once per solve.
         from calib.kinematics import LegKinematics
 
-        self._kin = {}
+        # The paper's t_r is the range of sensor offsets a plan is designed for (its period is
+        # 8 t_r, so the correlation is unambiguous well beyond it): each leg's solve searches its
+        # own policy's, for every leg a policy lifts
         self._solver_cfg = {}
+        for leg, m in self.metas.items():
+            try:
+                self._solver_cfg[leg] = replace(config.solver, max_offset=m.schedule.t_r)
+            except ValueError as e:
+                raise DeployError(f"{leg}'s lift schedule t_r {m.schedule.t_r:g} s: {e}") from None
+        self._kin = {}
         for leg in dict.fromkeys(config.legs or sorted(imu_legs)):
             if leg in self.metas:
                 sched = self.metas[leg].schedule
                 sched.prepare(leg)
-                # The paper's t_r is the range of sensor offsets the plan is designed for (its
-                # period is 8 t_r, so the correlation is unambiguous well beyond it)
-                try:
-                    self._solver_cfg[leg] = replace(config.solver, max_offset=sched.t_r)
-                except ValueError as e:
-                    raise DeployError(f"{leg}'s lift schedule t_r {sched.t_r:g} s: {e}") from None
                 # SOLVE reads the excitation back from the rings after the lowering and the
                 # stand: a shorter history would have lost its start by then
                 need = sched.plan(leg).duration + sched.lower + 5.0
@@ -312,7 +314,7 @@ class DeployRunner:
     def _start_solve(self, leg: str, window) -> SolveJob:
         truth = (self.cfg.truth or {}).get(leg)
         # the solver searches +-t_r and reads that much more of the encoders on each side
-        config = self._solver_cfg.get(leg, self.cfg.solver)
+        config = self._solver_cfg[leg]
         job = self._worker.submit(self.recorder, leg, window, self.time_base, self.cfg.out_dir,
                                   kin=self._kin.get(leg), config=config, truth=truth,
                                   pad_s=config.max_offset + 0.1)

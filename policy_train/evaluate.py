@@ -4,14 +4,14 @@ randomisation, per leg, each episode holding the tripod through one full calibra
 Per episode: the lift command at t = 0, then the JSON's schedule (shift, lift, hold, the
 anti-noise excitation with the JSON's ``t_r`` / ``n_basis`` / ``periods``, lower) and 0.5 s
 after. Success: no fall, no contact of anything but the feet, the lifted foot never touching
-during hold and excitation. During the excitation (steady window for CN): base tilt RMS,
-base angular-rate RMS (norm), lifted-leg joint tracking RMSE (all three joints, the joints
-at the end of each policy step against the plan at that instant; the motors get the plan
-through the drawn actuation latency, as on the robot), and the condition number of the executed foot angular velocity
-(body gyro rotated into the foot frame plus the leg's relative rate, at 50 Hz). Each failed
-episode is counted by its first cause (:func:`failure_cause`) and phase, and the stance calves'
-lowest approach to the floor during the excitation is reported (``calf_clearance_mm``), with
-how much of the excitation their targets sit on the soft limit that caps their extension
+during hold and excitation. During the excitation (steady window for CN): base tilt RMS, base
+angular-rate RMS (norm), lifted-leg joint tracking RMSE (all three joints, the joints at the end
+of each policy step against the plan at that instant; the motors get the plan through the drawn
+actuation latency, as on the robot), and the condition number of the executed foot angular
+velocity (body gyro rotated into the foot frame plus the leg's relative rate, at 50 Hz). Each
+failed episode is counted by its first cause (:func:`failure_cause`) and phase, and the stance
+calves' lowest approach to the floor during the excitation is reported (``calf_clearance_mm``),
+with how much of the excitation their targets sit on the soft limit that caps their extension
 (``stance_calves_on_clamp``: there a calf is a kp spring about that limit, and a weaker motor
 lets it fold) and the success of the episodes drawn with soft motors (``success_weak``: kp scale
 times motor strength below :data:`WEAK_STIFFNESS`).

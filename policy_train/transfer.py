@@ -79,13 +79,14 @@ class Scenario:
 
     base_mass_add: kg on the base link, exactly, on either model (mass and inertia scaled;
     ``LinkMass(add_kg=)``). base_com_shift: +- m per axis of the base's centre of mass.
-    friction: foot-floor sliding friction. motor_strength: scale of every motor's torque. latency_s: actuation latency, s. joint_friction: Coulomb friction, N m,
-    on every joint. joint_damping: viscous friction, N m s/rad, and armature: rotor inertia,
-    kg m^2, on every joint. noise_scale: times the training's observation noise (0: none). push_vel:
-    m/s of the pushes (0: none), every 4-8 s. floor_slope: rad the floor is tilted, descending
-    towards a direction drawn uniformly (the robot starts standing on it). floor_timeconst: s,
-    the floor contacts' solref time constant (MuJoCo's default 0.02; larger: a floor that
-    gives, the feet sinking into it).
+    friction: foot-floor sliding friction. motor_strength: scale of every motor's torque.
+    latency_s: actuation latency, s. joint_friction: Coulomb friction, N m, on every joint.
+    joint_damping: viscous friction, N m s/rad, and armature: rotor inertia, kg m^2, on every
+    joint. noise_scale: times the training's observation noise (0: none). push_vel: m/s of the
+    pushes (0: none), every 4-8 s. floor_slope: rad the floor is tilted, descending towards a
+    direction drawn uniformly (the robot starts standing on it). floor_timeconst: s, the floor
+    contacts' solref time constant (MuJoCo's default 0.02; larger: a floor that gives, the feet
+    sinking into it).
     """
 
     name: str

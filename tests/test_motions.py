@@ -117,8 +117,8 @@ def test_baselines_are_far_worse_conditioned_than_a2i(plans, capsys):
         assert a2i <= 1.02
         base = baseline_motions(leg, 20.0, 200.0, seed=0)
         ks = {name: m.kappa(leg) for name, m in base.items()}
-        for name, k in ks.items():
-            assert k > 20 * a2i, (leg, name, k)
+        for name in ("walk", "spin"):
+            assert ks[name] > 100 * a2i, (leg, name, ks[name])
         # the naive wave conditioned as the paper's (its CN 23-75), not a one-axis strawman
         assert 23 < ks["wave"] < 75, (leg, ks["wave"])
         rows.append(f"{leg}: a2i {a2i:.4f}  " + "  ".join(f"{n} {k:.3g}" for n, k in ks.items()))
