@@ -223,6 +223,24 @@ def foot_position_mirrored(qm: np.ndarray) -> np.ndarray:
     return np.stack([a, ch * THIGH_OFFSET_Y - sh * b, sh * THIGH_OFFSET_Y + ch * b], -1)
 
 
+def foot_clearance_excess(qm: np.ndarray, z_min: float, y_min: float,
+                          z_trunk: float) -> tuple[float, float]:
+    """How far (m, 0 = clear) mirrored joints ``qm`` (N, 3) take the foot centre below ``z_min``
+    (the floor) and into the trunk's side: inside ``y_min`` while above ``z_trunk``, the two
+    overlaps' smaller (hip-joint frame of :func:`foot_position_mirrored`)."""
+    p = foot_position_mirrored(qm)
+    ground = np.maximum(z_min - p[:, 2], 0)
+    trunk = np.minimum(np.maximum(y_min - p[:, 1], 0), np.maximum(p[:, 2] - z_trunk, 0))
+    return float(np.max(ground)), float(np.max(trunk))
+
+
+def contact_bounds() -> dict[str, float]:
+    """:func:`foot_clearance_excess`'s bounds (m) at contact: the foot sphere on the stance feet's
+    plane (base level) or touching the trunk's side; the optimiser keeps its margins above these."""
+    return {"z_min": stance_foot_z(), "y_min": TRUNK_HALF_WIDTH - HIP_OFFSET_Y + FOOT_RADIUS,
+            "z_trunk": TRUNK_BOTTOM_Z - FOOT_RADIUS}
+
+
 def _foot_position_jac(qm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Foot position (N, 3) and its Jacobian (N, 3 coords, 3 joints)."""
     qh, qt, qc = qm[:, 0], qm[:, 1], qm[:, 2]
@@ -364,20 +382,25 @@ class ExcitationPlan:
         return foot_kappa(q, dq)
 
     def audit(self, rate_hz: float = 2000.0) -> dict:
-        """The returned trajectory checked between the optimiser's grid points: ``kappa`` of
-        its steady window and how far (rad, rad/s; 0 = within) any joint goes past its
-        position limits and velocity limits, ramps included, sampled at ``rate_hz``."""
+        """The returned trajectory checked between the optimiser's grid points, ramps included,
+        sampled at ``rate_hz``: ``kappa`` of its steady window; how far (rad, rad/s; 0 =
+        within) any joint goes past its position and velocity limits; how far (m; 0 = clear)
+        the foot sphere goes into the floor (the stance feet's plane, base level) and into the
+        trunk's side. These are the hard bounds (contact, not the config's margins), which the
+        optimiser keeps with its margins on the grid only."""
         _, q, dq = self.sample(rate_hz)
         lo, hi = position_limits(self.leg)
+        floor, trunk = foot_clearance_excess(q * _mirror(self.leg), **contact_bounds())
         return {"kappa": self.steady_kappa(rate_hz),
                 "position_excess": float(max(0.0, np.max(lo - q), np.max(q - hi))),
-                "velocity_excess": float(max(0.0, np.max(np.abs(dq) - VELOCITY_LIMIT)))}
+                "velocity_excess": float(max(0.0, np.max(np.abs(dq) - VELOCITY_LIMIT))),
+                "floor_excess": floor, "trunk_excess": trunk}
 
     def problems(self, max_kappa: float = MAX_PLAN_KAPPA) -> list[str]:
         """Why this plan should not be played (empty: it may): :meth:`audit`'s kappa above
-        ``max_kappa``, or a joint past its position or velocity limits between the optimiser's
-        grid points. The optimiser returns its best feasible start whatever kappa it reached
-        (2.5 at t_r 0.04 s, 40 basis functions)."""
+        ``max_kappa``, a joint past its position or velocity limits, or the foot into the floor
+        or the trunk, between the optimiser's grid points. The optimiser returns its best
+        feasible start whatever kappa it reached (2.5 at t_r 0.04 s, 40 basis functions)."""
         audit = self.audit()
         out = []
         kappa = max(self.kappa, audit["kappa"])
@@ -387,6 +410,10 @@ class ExcitationPlan:
             out.append(f"the motion leaves the joint limits between the optimiser's samples "
                        f"({audit['position_excess']:.3g} rad, {audit['velocity_excess']:.3g} "
                        "rad/s past them)")
+        if audit["floor_excess"] > 0 or audit["trunk_excess"] > 0:
+            out.append(f"the foot goes into the floor ({1e3 * audit['floor_excess']:.3g} mm) or "
+                       f"the trunk ({1e3 * audit['trunk_excess']:.3g} mm) between the "
+                       "optimiser's samples")
         return out
 
     def to_csv(self, path, rate_hz: float = 200.0):
@@ -465,12 +492,13 @@ class ExcitationProblem:
         # the optimiser works on bounds tightened by ``tighten`` (rad, rad/s fraction, 0.1 x m)
         # so that the small violations a penalty method leaves stay inside the real bounds
         lo, hi = position_limits("FL" if is_front(cfg.leg) else "RL")
+        contact = contact_bounds()
         self.bounds = {
             "lo": lo + cfg.position_margin, "hi": hi - cfg.position_margin,
             "vmax": VELOCITY_LIMIT * cfg.velocity_fraction,
-            "z_min": stance_foot_z() + cfg.ground_clearance,
-            "y_min": TRUNK_HALF_WIDTH - HIP_OFFSET_Y + FOOT_RADIUS + cfg.body_clearance,
-            "z_trunk": TRUNK_BOTTOM_Z - FOOT_RADIUS - cfg.body_clearance,
+            "z_min": contact["z_min"] + cfg.ground_clearance,
+            "y_min": contact["y_min"] + cfg.body_clearance,
+            "z_trunk": contact["z_trunk"] - cfg.body_clearance,
             "reach_x": cfg.reach_x,
         }
         b = self.bounds
@@ -549,15 +577,15 @@ class ExcitationProblem:
 
     def check(self, q: np.ndarray, dq: np.ndarray) -> dict:
         """Worst violation of each real bound by mirrored joints ``q``, ``dq`` (M, 3)."""
-        p = foot_position_mirrored(q)
         b = self.bounds
-        body = np.minimum(np.maximum(b["y_min"] - p[:, 1], 0), np.maximum(p[:, 2] - b["z_trunk"], 0))
+        ground, trunk = foot_clearance_excess(q, b["z_min"], b["y_min"], b["z_trunk"])
+        p = foot_position_mirrored(q)
         return {
             "position": float(np.max(np.maximum(q - b["hi"], 0) + np.maximum(b["lo"] - q, 0))),
             "velocity": float(np.max(np.maximum(np.abs(dq) - b["vmax"], 0))),
-            "ground": float(np.max(np.maximum(b["z_min"] - p[:, 2], 0))),
+            "ground": ground,
             "reach": float(np.max(np.maximum(np.abs(p[:, 0]) - b["reach_x"], 0))),
-            "trunk": float(np.max(body)),
+            "trunk": trunk,
         }
 
     def kappa(self, th: np.ndarray) -> float:

@@ -18,7 +18,9 @@ from calib.excitation import (
     TRUNK_HALF_WIDTH,
     ExcitationConfig,
     ExcitationProblem,
+    contact_bounds,
     covariance_kappa,
+    foot_clearance_excess,
     foot_kappa,
     foot_omega,
     foot_position_mirrored,
@@ -260,6 +262,30 @@ def test_the_grid_sees_every_harmonic_and_the_audit_checks_between_its_points(pl
         a = plan.audit()
         assert a["kappa"] == pytest.approx(plan.kappa, rel=1e-6)
         assert a["position_excess"] == 0 and a["velocity_excess"] == 0
+        assert a["floor_excess"] == 0 and a["trunk_excess"] == 0
+
+
+def test_the_audit_refuses_a_foot_that_goes_into_the_floor_or_the_trunk(plans):
+    """The optimiser keeps its clearances on the grid; the audit, which a lift schedule and the
+    CLI ask before a plan plays, checked only the joints' limits between the grid's points."""
+    import dataclasses
+
+    hard = contact_bounds()
+    assert hard["z_min"] == stance_foot_z()
+    lifted = np.array([[0.0, 1.1, -2.3]])  # the tripod's lifted pose: clear of both
+    assert foot_clearance_excess(lifted, **hard) == (0.0, 0.0)
+    folded_in = np.array([[-0.9, 2.5, -2.6]])  # hip inward, the foot up at the trunk's side
+    floor, trunk = foot_clearance_excess(folded_in, **hard)
+    assert floor == 0 and trunk > 0.02
+    # the knee opened 0.8 rad over the whole motion: every joint inside its limits, the foot
+    # 17 mm below the stance feet's plane
+    plan = plans["FR"]
+    sunk = dataclasses.replace(plan, s0=plan.s0 + 0.8, c0=plan.c0 + 0.8)
+    a = sunk.audit()
+    assert a["position_excess"] == 0 and a["velocity_excess"] == 0
+    assert a["floor_excess"] > 0.01 and a["trunk_excess"] == 0
+    assert any("into the floor" in why for why in sunk.problems())
+    assert plan.problems() == []
 
 
 def test_a_plan_the_optimiser_could_not_bring_to_kappa_1_is_not_played():
