@@ -62,6 +62,7 @@ from sim.effects import (
     FloorSlope,
     FloorSoftness,
     FootFriction,
+    FootPayload,
     LinkMass,
     MotorStrength,
     ViscousFriction,
@@ -86,7 +87,7 @@ class Scenario:
     pushes (0: none), every 4-8 s. floor_slope: rad the floor is tilted, descending towards a
     direction drawn uniformly (the robot starts standing on it). floor_timeconst: s, the floor
     contacts' solref time constant (MuJoCo's default 0.02; larger: a floor that gives, the feet
-    sinking into it).
+    sinking into it). foot_payload: kg of a foot IMU node strapped to each foot, drawn per foot.
     """
 
     name: str
@@ -103,6 +104,7 @@ class Scenario:
     push_vel: float = 0.0
     floor_slope: tuple[float, float] | None = None
     floor_timeconst: tuple[float, float] | None = None
+    foot_payload: tuple[float, float] | None = None
 
     def draw(self, rng: np.random.Generator):
         """This episode's effects (fresh :mod:`sim.effects` objects) and
@@ -134,6 +136,8 @@ class Scenario:
             effects.append(FloorSlope(u(self.floor_slope), rng.uniform(-math.pi, math.pi)))
         if self.floor_timeconst is not None:
             effects.append(FloorSoftness(u(self.floor_timeconst)))
+        if self.foot_payload is not None:
+            effects += [FootPayload(u(self.foot_payload), leg) for leg in LEGS]
         dr = DRConfig()
         noise = {fld: self.noise_scale * getattr(dr, fld) for _, fld in OBS_NOISE}
         dist = Disturbance(**noise, push_vel=self.push_vel, push_interval=dr.push_interval,
@@ -178,6 +182,9 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
     _training_like("soft_floor", "training on a floor that gives: contact time constant "
                    "0.03-0.045 s, feet sinking 4-11 mm standing (not in the standard ranges)",
                    floor_timeconst=(0.03, 0.045)),
+    _training_like("foot_imus", "training with a foot IMU node of 30-80 g strapped to every foot "
+                   "(the calf and foot weigh 194 g on the URDF's model; not in the standard "
+                   "ranges)", foot_payload=(0.03, 0.08)),
 ]}
 
 

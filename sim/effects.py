@@ -144,7 +144,7 @@ class MotorStrength(Effect):
 EFFECT_NAMES: tuple[str, ...] = (
     "latency", "motor_strength", "coulomb_friction", "viscous_friction", "armature", "backlash",
     "link_mass", "foot_friction", "torque_limit", "imu_bias", "imu_misalignment",
-    "imu_time_offset", "packet_loss", "floor_slope", "floor_softness",
+    "imu_time_offset", "packet_loss", "floor_slope", "floor_softness", "foot_payload",
 )
 
 ActuationLatency.name = "latency"
@@ -445,6 +445,48 @@ class FloorSoftness(Effect):
         return f"FloorSoftness({self.timeconst!r}, dampratio={self.dampratio!r})"
 
 
+class FootPayload(Effect):
+    """A foot IMU node (board, case, mount, the cable's end) of ``kg`` strapped to ``leg``'s foot:
+    a rigid mass, a ``radius`` m solid sphere, ``offset`` m from the foot centre in the calf's
+    frame (default 4 cm up the calf, above the foot sphere): a body with no geometry, fixed to
+    the calf (fused into it where the model fuses static bodies). The model's calf and foot are
+    left as they are. On both models (the URDF's and an MJCF's, :mod:`sim.external_model`) the
+    foot is 0.213 m down the calf."""
+
+    name = "foot_payload"
+
+    def __init__(self, kg: float, leg: str, offset=(0.0, 0.0, 0.04), radius: float = 0.02) -> None:
+        from calib.joints import check_leg
+
+        self.kg, self.radius = float(kg), float(radius)
+        if not (np.isfinite(self.kg) and 0.0 < self.kg < 1.0):
+            raise ValueError(f"a foot payload must be in (0, 1) kg, got {kg!r}")
+        if not (np.isfinite(self.radius) and 0.0 < self.radius < 0.1):
+            raise ValueError(f"a foot payload's radius must be in (0, 0.1) m, got {radius!r}")
+        self.leg = check_leg(leg)
+        self.offset = np.asarray(offset, dtype=float).reshape(3)
+        if not (np.all(np.isfinite(self.offset)) and np.linalg.norm(self.offset) < 0.1):
+            raise ValueError(f"a foot payload sits within 0.1 m of the foot, got offset {offset!r}")
+
+    def modify_spec(self, spec: mujoco.MjSpec) -> None:
+        from sim.model import FOOT_OFFSET
+
+        calf = spec.body(f"{self.leg}_calf")
+        if calf is None:
+            raise ValueError(f"foot payload: the model has no body {self.leg}_calf")
+        inertia = 0.4 * self.kg * self.radius**2
+        # ipos and iquat given: left unset, MuJoCo 4.0 placed a geomless body's mass at twice
+        # its offset from the parent when fusing it
+        node = calf.add_body(name=f"{self.leg}_imu_node", pos=FOOT_OFFSET + self.offset,
+                             mass=self.kg, inertia=[inertia] * 3, ipos=[0.0, 0.0, 0.0],
+                             iquat=[1.0, 0.0, 0.0, 0.0])
+        node.explicitinertial = True
+
+    def __repr__(self) -> str:
+        return (f"FootPayload({self.kg!r}, leg={self.leg!r}, offset={self.offset.tolist()}, "
+                f"radius={self.radius!r})")
+
+
 class TorqueLimit(Effect):
     """Torque saturation below the URDF effort limit, with voltage sag: the motor delivers at
     most ``limit - droop * |dq|`` N m (>= 0) on the selected joints (droop N m s/rad models the
@@ -599,6 +641,7 @@ def apply_imu_effects(effects, t, gyro, accel, quat_wxyz):
 
 __all__ += [
     "EFFECT_NAMES", "MUJOCO_TIMECONST_S", "Armature", "Backlash", "CoulombFriction", "FloorSlope",
-    "FloorSoftness", "FootFriction", "ImuBias", "ImuEffect", "ImuMisalignment", "ImuTimeOffset",
-    "LinkMass", "PacketLoss", "TorqueLimit", "ViscousFriction", "apply_imu_effects",
+    "FloorSoftness", "FootFriction", "FootPayload", "ImuBias", "ImuEffect", "ImuMisalignment",
+    "ImuTimeOffset", "LinkMass", "PacketLoss", "TorqueLimit", "ViscousFriction",
+    "apply_imu_effects",
 ]

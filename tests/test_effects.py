@@ -14,6 +14,7 @@ from sim.effects import (
     FloorSlope,
     FloorSoftness,
     FootFriction,
+    FootPayload,
     ImuBias,
     ImuMisalignment,
     ImuTimeOffset,
@@ -52,7 +53,7 @@ def _step_target():
 def test_names_and_classes():
     for cls in (ActuationLatency, MotorStrength, CoulombFriction, ViscousFriction, Armature,
                 Backlash, LinkMass, FootFriction, TorqueLimit, PacketLoss, ImuBias,
-                ImuMisalignment, ImuTimeOffset, FloorSlope, FloorSoftness):
+                ImuMisalignment, ImuTimeOffset, FloorSlope, FloorSoftness, FootPayload):
         assert cls.name in EFFECT_NAMES
 
 
@@ -113,6 +114,30 @@ def test_backlash_and_link_mass_increase_the_gravity_sag():
     assert sim.model.body_mass[b] == pytest.approx(2.0 * nominal.model.body_mass[b])
     with pytest.raises(ValueError):
         LinkMass(1.2, "FL_knee")
+
+
+def test_a_foot_imu_node_weighs_on_its_calf():
+    """30-80 g strapped above a foot (the transfer check's foot_imus) on a calf of 194 g; on a
+    third party's MJCF: tests/test_external_model.py."""
+    from calib.joints import LEGS
+
+    nodes = [FootPayload(0.05, leg) for leg in LEGS]
+    urdf = Go2Sim(SimConfig(base="fixed", effects=nodes)).model
+    bare = Go2Sim(SimConfig(base="fixed")).model
+    c = bare.body("FL_calf").id
+    assert urdf.body_mass[c] == pytest.approx(bare.body_mass[c] + 0.05)  # fused into the calf
+    # the centre of mass of the two, the node 4 cm above the foot centre (0.213 m down)
+    z = (bare.body_mass[c] * bare.body_ipos[c, 2] + 0.05 * (-0.213 + 0.04)) / (bare.body_mass[c] + 0.05)
+    assert urdf.body_ipos[c, 2] == pytest.approx(z, abs=1e-9)
+    assert urdf.body_subtreemass[0] == pytest.approx(bare.body_subtreemass[0] + 0.2)
+    # the calf's thicker end pulls the knee down further under the same PD
+    _, q0, _ = _run([], kp=10.0, kd=0.5, steps=600)
+    _, q1, _ = _run([FootPayload(0.3, "FL")], kp=10.0, kd=0.5, steps=600)
+    assert abs(q1[-1, CALF] - q0[-1, CALF]) > 0.01
+    for bad in ({"kg": 0.0, "leg": "FL"}, {"kg": 0.05, "leg": "XX"},
+                {"kg": 0.05, "leg": "FL", "offset": (0, 0, 0.2)}):
+        with pytest.raises(ValueError):
+            FootPayload(**bad)
 
 
 def test_torque_limit_caps_the_motor():

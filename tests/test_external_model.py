@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from calib.joints import EFFORT_LIMIT, MODEL_JOINT_NAMES, SDK_JOINT_NAMES
-from sim.effects import FloorSoftness, FootFriction, LinkMass
+from sim.effects import FloorSoftness, FootFriction, FootPayload, LinkMass
 from sim.external_model import build_go2_spec_from_mjcf
 from sim.go2 import Go2Sim, SimConfig, build_model_for, stand_pose
 from sim.model import build_go2_spec, check_joint_order
@@ -178,3 +178,15 @@ def test_the_mock_robot_runs_on_it(third_party):
             keys = robot.sim.model.nkey
     assert keys == 0  # the file's model, keyframe dropped
     np.testing.assert_allclose(feet[0], feet[1], atol=1e-4)
+
+
+def test_a_foot_imu_node_goes_on_a_third_party_calf(third_party):
+    """Such files keep their static bodies unfused (MuJoCo's default): the node is its own
+    geometry-less body on the calf, where its foot is a geom, and adds just its mass."""
+    nodes = [FootPayload(0.05, leg) for leg in ("FL", "FR", "RL", "RR")]
+    m0 = build_model_for(SimConfig(base="fixed", model_xml=str(third_party)))
+    m1 = build_model_for(SimConfig(base="fixed", model_xml=str(third_party), effects=nodes))
+    assert m1.body_subtreemass[0] == pytest.approx(m0.body_subtreemass[0] + 0.2)
+    node = m1.body("FL_imu_node")
+    assert m1.body_parentid[node.id] == m1.body("FL_calf").id
+    np.testing.assert_allclose(m1.body_pos[node.id], [0.0, 0.0, -0.213 + 0.04])

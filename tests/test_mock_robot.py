@@ -498,6 +498,8 @@ def test_config_files_and_errors(tmp_path):
         ("foot_imus: {FL: {node_id: .inf}}\n", "node_id must be a whole number in 0..255"),
         ("foot_imus: {all: {garbage_max_bytes: .inf}}\n", "garbage_max_bytes"),
         ("foot_imus: [FL]\n", "foot_imus must be a mapping"),
+        ("foot_imus: {RR: {mass_kg: -0.05}}\n", "foot_imus.RR.mass_kg must be in"),
+        ("foot_imus: {RR: {mass_kg: heavy}}\n", "foot_imus.RR.mass_kg"),
         ("foot_imus: {FL: {rate_hz: 200}, fl: {node_id: 9}}\n", "names a leg twice"),
         ("lockstep_idle_repeat_s: .inf\n", "lockstep_idle_repeat_s"),
         ("lockstep_port_wait_s: 1.0e+300\n", "lockstep_port_wait_s"),
@@ -554,6 +556,20 @@ def test_a_sloped_floor_is_what_the_body_imu_reports():
         assert np.degrees(robot.sim.base_tilt) == pytest.approx(6.0, abs=1e-3)
     roll, pitch, _ = np.degrees(v.rpy)
     assert roll == pytest.approx(-6.0, abs=0.05) and abs(pitch) < 0.05
+
+
+def test_a_foot_imu_node_weighs_on_its_foot_only_where_it_is_fitted():
+    """``mass_kg`` puts the node on the mock's simulated calf (``sim.effects.FootPayload``); a
+    disabled IMU carries no node."""
+    cfg = MockConfig(listen=[], clock="lockstep",
+                     foot_imus={"all": {"mass_kg": 0.06}, "RR": {"enabled": False}})
+    assert cfg.foot_payloads() == {"FL": 0.06, "FR": 0.06, "RL": 0.06}
+    bare = MockConfig(listen=[], clock="lockstep", foot_imus=NO_IMUS)
+    with MockRobot(cfg, transport=False) as robot, MockRobot(bare, transport=False) as plain:
+        m, m0 = robot.sim.model, plain.sim.model
+        for leg, kg in (("FL", 0.06), ("RR", 0.0)):
+            c = m.body(f"{leg}_calf").id
+            assert m.body_mass[c] == pytest.approx(m0.body_mass[c] + kg)
 
 
 def test_shared_port_carries_all_nodes():

@@ -13,6 +13,7 @@ import pytest
 pytest.importorskip("mujoco")
 pytest.importorskip("onnxruntime")
 
+from calib.joints import LEGS
 from policy_train.cli import main
 from policy_train.config import DRConfig
 from policy_train.policy_motion import Disturbance
@@ -34,6 +35,7 @@ from sim.effects import (
     FloorSlope,
     FloorSoftness,
     FootFriction,
+    FootPayload,
     LinkMass,
     MotorStrength,
     ViscousFriction,
@@ -85,6 +87,10 @@ def test_training_scenario_draws_the_training_ranges():
     soft = [e for e in SCENARIOS["soft_floor"].draw(np.random.default_rng(0))[0]
             if isinstance(e, FloorSoftness)]
     assert len(soft) == 1 and 0.03 <= soft[0].timeconst <= 0.045
+    nodes = [e for e in SCENARIOS["foot_imus"].draw(np.random.default_rng(0))[0]
+             if isinstance(e, FootPayload)]
+    assert sorted(n.leg for n in nodes) == sorted(LEGS)
+    assert all(0.03 <= n.kg <= 0.08 for n in nodes) and len({n.kg for n in nodes}) == 4
     assert SCENARIOS["quiet"].draw(np.random.default_rng(0))[1].noise_joint_vel == 0.0
     assert SCENARIOS["noisy"].draw(np.random.default_rng(0))[1].noise_joint_vel == 2 * 1.5
     effects, dist = SCENARIOS["nominal"].draw(np.random.default_rng(0))
@@ -100,7 +106,7 @@ def test_scenarios_keep_their_places():
     # policies are paired with new runs (compare) only while the places stay put
     assert list(SCENARIOS)[:11] == ["nominal", "training", "heavy", "slippery", "late", "weak",
                                     "joint_friction", "shoves", "noisy", "quiet", "damped_joints"]
-    assert list(SCENARIOS)[11:] == ["slope", "soft_floor"]
+    assert list(SCENARIOS)[11:] == ["slope", "soft_floor", "foot_imus"]
 
 
 def test_disturbance_noise_is_bounded_and_only_on_sensed_terms():

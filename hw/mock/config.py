@@ -67,6 +67,8 @@ class FootImuMockConfig:
     0xA2, so never a false sync) before it (fault tests). node_id: u8 (None: FL 1, FR 2,
     RL 3, RR 4). clock_offset_s: device clock reading at the mock's start, realtime clock only
     (None: random in [10, 1000] s). clock_drift_ppm: device clock rate error, realtime only.
+    mass_kg: the node's mass (board, case, mount) strapped to the foot, 4 cm up the calf from
+    the foot centre (``sim.effects.FootPayload``); 0: weightless.
     """
 
     enabled: bool = True
@@ -85,6 +87,7 @@ class FootImuMockConfig:
     node_id: int | None = None
     clock_offset_s: float | None = None
     clock_drift_ppm: float = 0.0
+    mass_kg: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -357,12 +360,19 @@ class MockConfig:
                 raise ValueError(f"foot_imus.{leg}.clock_offset_s must be >= 0")
             if not (math.isfinite(e.clock_drift_ppm) and abs(e.clock_drift_ppm) < 1000):
                 raise ValueError(f"foot_imus.{leg}.clock_drift_ppm must be within +-1000")
+            if not (isinstance(e.mass_kg, int | float) and 0 <= e.mass_kg < 1):
+                raise ValueError(f"foot_imus.{leg}.mass_kg must be in [0, 1) kg, got {e.mass_kg!r}")
             out[leg] = ResolvedImu(leg=leg, sensor=sensor, node_id=node,
                                    garbage_prob=float(e.garbage_prob),
                                    garbage_max_bytes=int(e.garbage_max_bytes),
                                    clock_offset_s=clock0,
                                    clock_drift_ppm=float(e.clock_drift_ppm), seed=leg_seed)
         return out
+
+    def foot_payloads(self) -> dict[str, float]:
+        """kg on each foot whose IMU is enabled and has a ``mass_kg`` (call after validate)."""
+        return {leg: float(e.mass_kg) for leg, e in self.imu_entries().items()
+                if e.enabled and e.mass_kg > 0}
 
     # ------------------------------------------------------------------ (de)serialisation
     @classmethod

@@ -71,7 +71,7 @@ from hw.joystick import encode_wireless_remote, key_mask
 from hw.mock.config import MockConfig
 from hw.mock.foot_imus import FootImuChannel, PortWriter, rotation_to_quat_wxyz
 from hw.transport import KEY_LOWCMD, KEY_LOWSTATE, KEY_WIRELESS, Transport
-from sim.effects import MUJOCO_TIMECONST_S, FloorSlope, FloorSoftness
+from sim.effects import MUJOCO_TIMECONST_S, FloorSlope, FloorSoftness, FootPayload
 from sim.go2 import Go2Sim, SimConfig
 from sim.sensors import BodyImuModel, EncoderModel
 
@@ -140,8 +140,9 @@ class MockRobot:
                  if cfg.floor_slope_deg else [])
         if cfg.floor_timeconst_s != MUJOCO_TIMECONST_S:
             floor.append(FloorSoftness(cfg.floor_timeconst_s))
+        nodes = [FootPayload(kg, leg) for leg, kg in cfg.foot_payloads().items()]
         self.sim = Go2Sim(SimConfig(base=cfg.base, timestep=cfg.physics_dt, seed=cfg.seed,
-                                    effects=floor, model_xml=cfg.model_xml))
+                                    effects=floor + nodes, model_xml=cfg.model_xml))
         pose = LIE_POSE_LEG if cfg.initial_pose == "lying" else STAND_POSE_LEG
         self.sim.reset(q=full_pose(pose, order="model"))
         self._dt = cfg.physics_dt
