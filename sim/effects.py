@@ -23,7 +23,8 @@ from typing import TYPE_CHECKING
 import mujoco
 import numpy as np
 
-from calib.joints import MODEL_JOINT_NAMES, NUM_MOTORS
+from calib.joints import MODEL_JOINT_NAMES, NUM_MOTORS, check_leg
+from sim.model import FOOT_OFFSET
 
 if TYPE_CHECKING:  # pragma: no cover - typing only
     from sim.go2 import Go2Sim
@@ -456,8 +457,6 @@ class FootPayload(Effect):
     name = "foot_payload"
 
     def __init__(self, kg: float, leg: str, offset=(0.0, 0.0, 0.04), radius: float = 0.02) -> None:
-        from calib.joints import check_leg
-
         self.kg, self.radius = float(kg), float(radius)
         if not (np.isfinite(self.kg) and 0.0 < self.kg < 1.0):
             raise ValueError(f"a foot payload must be in (0, 1) kg, got {kg!r}")
@@ -469,8 +468,6 @@ class FootPayload(Effect):
             raise ValueError(f"a foot payload sits within 0.1 m of the foot, got offset {offset!r}")
 
     def modify_spec(self, spec: mujoco.MjSpec) -> None:
-        from sim.model import FOOT_OFFSET
-
         calf = spec.body(f"{self.leg}_calf")
         if calf is None:
             raise ValueError(f"foot payload: the model has no body {self.leg}_calf")
