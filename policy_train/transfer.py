@@ -58,6 +58,7 @@ from deploy.tip_guard import RETRY_SHIFT_S, TipLimits
 from sim.effects import (
     ActuationLatency,
     Armature,
+    Backlash,
     CoulombFriction,
     FloorSlope,
     FloorSoftness,
@@ -88,6 +89,7 @@ class Scenario:
     direction drawn uniformly (the robot starts standing on it). floor_timeconst: s, the floor
     contacts' solref time constant (MuJoCo's default 0.02; larger: a floor that gives, the feet
     sinking into it). foot_payload: kg of a foot IMU node strapped to each foot, drawn per foot.
+    backlash: rad, half the gear play of every joint, drawn per joint.
     """
 
     name: str
@@ -105,6 +107,7 @@ class Scenario:
     floor_slope: tuple[float, float] | None = None
     floor_timeconst: tuple[float, float] | None = None
     foot_payload: tuple[float, float] | None = None
+    backlash: tuple[float, float] | None = None
 
     def draw(self, rng: np.random.Generator):
         """This episode's effects (fresh :mod:`sim.effects` objects) and
@@ -138,6 +141,8 @@ class Scenario:
             effects.append(FloorSoftness(u(self.floor_timeconst)))
         if self.foot_payload is not None:
             effects += [FootPayload(u(self.foot_payload), leg) for leg in LEGS]
+        if self.backlash is not None:  # last: it follows the commands as the motors get them
+            effects.append(Backlash(rng.uniform(*self.backlash, size=12)))
         dr = DRConfig()
         noise = {fld: self.noise_scale * getattr(dr, fld) for _, fld in OBS_NOISE}
         dist = Disturbance(**noise, push_vel=self.push_vel, push_interval=dr.push_interval,
@@ -185,6 +190,9 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
     _training_like("foot_imus", "training with a foot IMU node of 30-80 g strapped to every foot "
                    "(the calf and foot weigh 194 g on the URDF's model; not in the standard "
                    "ranges)", foot_payload=(0.03, 0.08)),
+    _training_like("backlash", "training with gear play of +-0.003-0.01 rad (0.3-1.1 deg in "
+                   "all) on every joint, the encoders on the rotors (not in the standard "
+                   "ranges)", backlash=(0.003, 0.01)),
 ]}
 
 

@@ -31,6 +31,7 @@ from policy_train.transfer import (
 from sim.effects import (
     ActuationLatency,
     Armature,
+    Backlash,
     CoulombFriction,
     FloorSlope,
     FloorSoftness,
@@ -91,6 +92,9 @@ def test_training_scenario_draws_the_training_ranges():
              if isinstance(e, FootPayload)]
     assert sorted(n.leg for n in nodes) == sorted(LEGS)
     assert all(0.03 <= n.kg <= 0.08 for n in nodes) and len({n.kg for n in nodes}) == 4
+    effects = SCENARIOS["backlash"].draw(np.random.default_rng(0))[0]
+    assert isinstance(effects[-1], Backlash) and len(effects[-1].indices) == 12
+    assert np.all((effects[-1].half_width >= 0.003) & (effects[-1].half_width <= 0.01))
     assert SCENARIOS["quiet"].draw(np.random.default_rng(0))[1].noise_joint_vel == 0.0
     assert SCENARIOS["noisy"].draw(np.random.default_rng(0))[1].noise_joint_vel == 2 * 1.5
     effects, dist = SCENARIOS["nominal"].draw(np.random.default_rng(0))
@@ -106,7 +110,7 @@ def test_scenarios_keep_their_places():
     # policies are paired with new runs (compare) only while the places stay put
     assert list(SCENARIOS)[:11] == ["nominal", "training", "heavy", "slippery", "late", "weak",
                                     "joint_friction", "shoves", "noisy", "quiet", "damped_joints"]
-    assert list(SCENARIOS)[11:] == ["slope", "soft_floor", "foot_imus"]
+    assert list(SCENARIOS)[11:] == ["slope", "soft_floor", "foot_imus", "backlash"]
 
 
 def test_disturbance_noise_is_bounded_and_only_on_sensed_terms():
