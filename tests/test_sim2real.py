@@ -284,3 +284,20 @@ def test_packet_loss_pays_in_its_bic_for_the_drops_found_on_the_held_out_windows
     assert fit.k_bic == held_drops.size and fit.k == train_drops.size
     in_held = [any(rec.t[a] <= t < rec.t[b - 1] for a, b in pb.held) for t in fit.drop_times]
     assert sum(in_held) == held_drops.size
+
+
+def test_a_foot_imu_node_s_mass_is_found_as_its_calf_s(tmp_path, capsys):
+    """The node a foot IMU sits in (``sim.effects.FootPayload``, 80 g above the foot) is no
+    candidate of its own: the diagnoser finds it as a heavier calf on its leg."""
+    rec = tmp_path / "node.csv"
+    assert main(["synth", str(rec), "--mount", "suspended", "--effect", "foot_payload=0.08@FL",
+                 "--seed", "3"]) == 0
+    out = tmp_path / "d.json"
+    assert main(["diagnose", str(rec), "--quiet", "--json", str(out)]) == 0
+    d = json.loads(out.read_text())
+    assert d["significant_gap"]
+    assert (d["effects"][0]["name"], d["effects"][0]["location"]) == ("link_mass", ["FL_calf"])
+    assert d["gap_after"] < 0.2 * d["gap_before"]
+    capsys.readouterr()
+    assert main(["synth", str(rec), "--effect", "foot_payload=0.08"]) == 2
+    assert "needs its leg" in capsys.readouterr().err
