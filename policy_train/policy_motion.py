@@ -87,6 +87,12 @@ class Disturbance:
     (rad), ``noise_joint_vel`` (rad/s). Pushes: every ``push_interval`` s (uniform in the
     range) the base's horizontal velocity changes by a uniform +-``push_vel`` m/s per world axis
     (0: no pushes). seed: the draws.
+
+    The body IMU as mounted, before the noise: ``imu_tilt`` (rad, rotation vector, base frame)
+    turns the IMU's frame from the base's, so it reads the body's rate and gravity in that
+    frame (the policy's ``base_ang_vel`` and ``projected_gravity``, and the gravity the lifted
+    leg's feed-forward is computed with, as on board); ``gyro_bias`` (rad/s, IMU frame) is added
+    to its rate.
     """
 
     noise_ang_vel: float = 0.0
@@ -96,8 +102,16 @@ class Disturbance:
     push_vel: float = 0.0
     push_interval: tuple[float, float] = (4.0, 8.0)
     seed: int = 0
+    imu_tilt: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gyro_bias: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
+        for k in ("imu_tilt", "gyro_bias"):
+            v = np.asarray(getattr(self, k), dtype=float)
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"{k} must be 3 finite numbers, got {getattr(self, k)!r}")
+        if np.linalg.norm(self.imu_tilt) >= 0.5:
+            raise ValueError(f"imu_tilt must turn the IMU by less than 0.5 rad, got {self.imu_tilt!r}")
         for k in ("noise_ang_vel", "noise_gravity", "noise_joint_pos", "noise_joint_vel",
                   "push_vel"):
             v = getattr(self, k)
@@ -107,9 +121,23 @@ class Disturbance:
         if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi):
             raise ValueError(f"push_interval must be 0 < lo <= hi s, got {self.push_interval!r}")
 
+    def imu_frame(self, v_base: np.ndarray) -> np.ndarray:
+        """A base-frame vector (3,) as the body IMU, turned by ``imu_tilt``, reads it."""
+        rv = np.asarray(self.imu_tilt, dtype=float)
+        a = float(np.linalg.norm(rv))
+        if a == 0.0:
+            return np.asarray(v_base, dtype=float)
+        k = rv / a  # Rodrigues, R^T v: the IMU frame is the base's turned by R
+        v = np.asarray(v_base, dtype=float)
+        return v * np.cos(a) - np.cross(k, v) * np.sin(a) + k * (k @ v) * (1 - np.cos(a))
+
     def noisy(self, signals: dict, rng: np.random.Generator) -> dict:
-        """``signals`` (deploy.observation names) with this noise added to the sensed terms."""
+        """``signals`` (deploy.observation names) as the robot senses them: the body IMU's
+        mounting and bias, then this noise added to the sensed terms."""
         out = dict(signals)
+        if any(self.imu_tilt) or any(self.gyro_bias):
+            out["base_ang_vel"] = self.imu_frame(out["base_ang_vel"]) + np.asarray(self.gyro_bias)
+            out["projected_gravity"] = self.imu_frame(out["projected_gravity"])
         for key, fld in OBS_NOISE:
             a = getattr(self, fld)
             if a > 0:
@@ -210,6 +238,11 @@ def run_policy_a2i(
     rng = None if disturbance is None else np.random.default_rng(disturbance.seed)
     pushing = disturbance is not None and disturbance.push_vel > 0
     next_push = rng.uniform(*disturbance.push_interval) if pushing else np.inf
+
+    def sensed_gravity(quat_wxyz):  # as the body IMU reads it (deploy's feed-forward uses it)
+        g = projected_gravity(quat_wxyz)
+        return g if disturbance is None else disturbance.imu_frame(g)
+
     # the lift command comes on a policy tick, as on board
     n_settle = round(settle_s / pb.control_dt) * n_ctrl
     n_total = n_settle + int(np.ceil((ends[-1] + after_s) / timestep))
@@ -278,7 +311,7 @@ def run_policy_a2i(
             if adapter is not None and phase == _EXCITE:
                 # a tick's measurement against the plan at this instant, as on board
                 i = k - k_latch
-                g = projected_gravity(sim.base_quat_wxyz)
+                g = sensed_gravity(sim.base_quat_wxyz)
                 model = sched_tau.at(i, g) if sched_tau is not None else zeros3
                 adapter.observe(t_lift - t_exc0, sched_q[i], sched_dq[i], sched_ddq[i],
                                 sim.q[idx_m], sim.dq[idx_m], model, applied)
@@ -322,7 +355,7 @@ def run_policy_a2i(
             kd_c[idx_m] = sched.kd
             model = zeros3
             if sched_tau is not None:
-                model = sched_tau.at(j, projected_gravity(sim.base_quat_wxyz))
+                model = sched_tau.at(j, sensed_gravity(sim.base_quat_wxyz))
             if adapter is not None and phase >= _EXCITE:
                 applied = adapter.torque((k_latch + j - n_settle) * timestep - t_exc0,
                                          sched_dq[j], sched_ddq[j], model)[0]

@@ -89,7 +89,10 @@ class Scenario:
     direction drawn uniformly (the robot starts standing on it). floor_timeconst: s, the floor
     contacts' solref time constant (MuJoCo's default 0.02; larger: a floor that gives, the feet
     sinking into it). foot_payload: kg of a foot IMU node strapped to each foot, drawn per foot.
-    backlash: rad, half the gear play of every joint, drawn per joint.
+    backlash: rad, half the gear play of every joint, drawn per joint. imu_tilt_deg: the body
+    IMU mounted turned from the base by this many degrees about an axis drawn uniformly;
+    gyro_bias: rad/s, the body gyro's bias, uniform in +- per axis (both as the policy and the
+    lifted leg's feed-forward sense the body, :class:`~policy_train.policy_motion.Disturbance`).
     """
 
     name: str
@@ -108,6 +111,8 @@ class Scenario:
     floor_timeconst: tuple[float, float] | None = None
     foot_payload: tuple[float, float] | None = None
     backlash: tuple[float, float] | None = None
+    imu_tilt_deg: tuple[float, float] | None = None
+    gyro_bias: float = 0.0
 
     def draw(self, rng: np.random.Generator):
         """This episode's effects (fresh :mod:`sim.effects` objects) and
@@ -143,10 +148,16 @@ class Scenario:
             effects += [FootPayload(u(self.foot_payload), leg) for leg in LEGS]
         if self.backlash is not None:  # last: it follows the commands as the motors get them
             effects.append(Backlash(rng.uniform(*self.backlash, size=12)))
+        imu = {}
+        if self.imu_tilt_deg is not None:
+            axis = rng.normal(size=3)
+            imu["imu_tilt"] = tuple(axis / np.linalg.norm(axis) * math.radians(u(self.imu_tilt_deg)))
+        if self.gyro_bias:
+            imu["gyro_bias"] = tuple(rng.uniform(-self.gyro_bias, self.gyro_bias, 3))
         dr = DRConfig()
         noise = {fld: self.noise_scale * getattr(dr, fld) for _, fld in OBS_NOISE}
         dist = Disturbance(**noise, push_vel=self.push_vel, push_interval=dr.push_interval,
-                           seed=int(rng.integers(1 << 31)))
+                           seed=int(rng.integers(1 << 31)), **imu)
         return effects, dist
 
 
@@ -193,6 +204,9 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
     _training_like("backlash", "training with gear play of +-0.003-0.01 rad (0.3-1.1 deg in "
                    "all) on every joint, the encoders on the rotors (not in the standard "
                    "ranges)", backlash=(0.003, 0.01)),
+    _training_like("body_imu", "training with the body IMU mounted 1-2 deg off about any axis "
+                   "and a gyro bias of up to +-0.02 rad/s per axis (not in the standard ranges)",
+                   imu_tilt_deg=(1.0, 2.0), gyro_bias=0.02),
 ]}
 
 

@@ -95,6 +95,10 @@ def test_training_scenario_draws_the_training_ranges():
     effects = SCENARIOS["backlash"].draw(np.random.default_rng(0))[0]
     assert isinstance(effects[-1], Backlash) and len(effects[-1].indices) == 12
     assert np.all((effects[-1].half_width >= 0.003) & (effects[-1].half_width <= 0.01))
+    dist = SCENARIOS["body_imu"].draw(np.random.default_rng(0))[1]
+    assert 1.0 <= np.degrees(np.linalg.norm(dist.imu_tilt)) <= 2.0
+    assert np.all(np.abs(dist.gyro_bias) <= 0.02) and np.any(dist.gyro_bias)
+    assert SCENARIOS["training"].draw(np.random.default_rng(0))[1].imu_tilt == (0.0, 0.0, 0.0)
     assert SCENARIOS["quiet"].draw(np.random.default_rng(0))[1].noise_joint_vel == 0.0
     assert SCENARIOS["noisy"].draw(np.random.default_rng(0))[1].noise_joint_vel == 2 * 1.5
     effects, dist = SCENARIOS["nominal"].draw(np.random.default_rng(0))
@@ -110,7 +114,30 @@ def test_scenarios_keep_their_places():
     # policies are paired with new runs (compare) only while the places stay put
     assert list(SCENARIOS)[:11] == ["nominal", "training", "heavy", "slippery", "late", "weak",
                                     "joint_friction", "shoves", "noisy", "quiet", "damped_joints"]
-    assert list(SCENARIOS)[11:] == ["slope", "soft_floor", "foot_imus", "backlash"]
+    assert list(SCENARIOS)[11:] == ["slope", "soft_floor", "foot_imus", "backlash",
+                                     "body_imu"]
+
+
+def test_a_body_imu_mounted_off_reads_the_body_in_its_own_frame():
+    """Disturbance.imu_tilt turns what the policy and the feed-forward sense: a level body on an
+    IMU rolled 2 deg reads gravity rolled the other way; a yaw turn leaves gravity alone but
+    moves the rate between axes; the bias is added after."""
+    tilt = np.radians(2.0)
+    d = Disturbance(imu_tilt=(tilt, 0.0, 0.0), gyro_bias=(0.0, 0.0, 0.01))
+    s = d.noisy({"base_ang_vel": np.array([0.0, 0.0, 0.1]),
+                 "projected_gravity": np.array([0.0, 0.0, -1.0])}, np.random.default_rng(0))
+    np.testing.assert_allclose(s["projected_gravity"], [0.0, -np.sin(tilt), -np.cos(tilt)],
+                               atol=1e-12)
+    np.testing.assert_allclose(s["base_ang_vel"], [0.0, 0.1 * np.sin(tilt),
+                                                   0.1 * np.cos(tilt) + 0.01], atol=1e-12)
+    yaw = Disturbance(imu_tilt=(0.0, 0.0, 0.3))
+    np.testing.assert_allclose(yaw.imu_frame(np.array([0.0, 0.0, -1.0])), [0.0, 0.0, -1.0])
+    np.testing.assert_allclose(yaw.imu_frame(np.array([1.0, 0.0, 0.0])),
+                               [np.cos(0.3), -np.sin(0.3), 0.0], atol=1e-12)
+    with pytest.raises(ValueError, match="imu_tilt"):
+        Disturbance(imu_tilt=(0.6, 0.0, 0.0))
+    with pytest.raises(ValueError, match="gyro_bias"):
+        Disturbance(gyro_bias=(0.0, np.nan, 0.0))
 
 
 def test_disturbance_noise_is_bounded_and_only_on_sensed_terms():
