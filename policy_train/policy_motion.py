@@ -111,7 +111,8 @@ class Disturbance:
             if v.shape != (3,) or not np.all(np.isfinite(v)):
                 raise ValueError(f"{k} must be 3 finite numbers, got {getattr(self, k)!r}")
         if np.linalg.norm(self.imu_tilt) >= 0.5:
-            raise ValueError(f"imu_tilt must turn the IMU by less than 0.5 rad, got {self.imu_tilt!r}")
+            raise ValueError("imu_tilt must turn the IMU by less than 0.5 rad, got "
+                             f"{self.imu_tilt!r}")
         for k in ("noise_ang_vel", "noise_gravity", "noise_joint_pos", "noise_joint_vel",
                   "push_vel"):
             v = getattr(self, k)

@@ -151,7 +151,8 @@ class Scenario:
         imu = {}
         if self.imu_tilt_deg is not None:
             axis = rng.normal(size=3)
-            imu["imu_tilt"] = tuple(axis / np.linalg.norm(axis) * math.radians(u(self.imu_tilt_deg)))
+            angle = math.radians(u(self.imu_tilt_deg))
+            imu["imu_tilt"] = tuple(axis / np.linalg.norm(axis) * angle)
         if self.gyro_bias:
             imu["gyro_bias"] = tuple(rng.uniform(-self.gyro_bias, self.gyro_bias, 3))
         dr = DRConfig()

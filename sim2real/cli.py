@@ -87,7 +87,8 @@ def _parse_effect(text: str):
     if name not in table:
         raise ValueError(f"--effect: unknown effect {name!r}")
     if name == "foot_payload" and not where:
-        raise ValueError(f"--effect {text!r}: a foot payload needs its leg, e.g. foot_payload=0.06@FL")
+        raise ValueError(f"--effect {text!r}: a foot payload needs its leg, e.g. "
+                         "foot_payload=0.06@FL")
     return table[name]()
 
 
@@ -128,8 +129,9 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("synth", help="make a recording from sim with injected effects")
     s.add_argument("out")
     s.add_argument("--mount", choices=("suspended", "ground"))
-    s.add_argument("--effect", action="append", default=[], help="NAME=VALUE[@JOINT], e.g. backlash=0.02@RL_thigh, "
-                   "foot_payload=0.06@FL (kg; a foot IMU node's mass on that leg)")
+    s.add_argument("--effect", action="append", default=[],
+                   help="NAME=VALUE[@JOINT], e.g. backlash=0.02@RL_thigh, foot_payload=0.06@FL "
+                        "(kg; a foot IMU node's mass on that leg)")
     s.add_argument("--duration", type=float, default=8.0)
     s.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)

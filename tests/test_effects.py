@@ -127,7 +127,8 @@ def test_a_foot_imu_node_weighs_on_its_calf():
     c = bare.body("FL_calf").id
     assert urdf.body_mass[c] == pytest.approx(bare.body_mass[c] + 0.05)  # fused into the calf
     # the centre of mass of the two, the node 4 cm above the foot centre (0.213 m down)
-    z = (bare.body_mass[c] * bare.body_ipos[c, 2] + 0.05 * (-0.213 + 0.04)) / (bare.body_mass[c] + 0.05)
+    m = bare.body_mass[c]
+    z = (m * bare.body_ipos[c, 2] + 0.05 * (-0.213 + 0.04)) / (m + 0.05)
     assert urdf.body_ipos[c, 2] == pytest.approx(z, abs=1e-9)
     assert urdf.body_subtreemass[0] == pytest.approx(bare.body_subtreemass[0] + 0.2)
     # the calf's thicker end pulls the knee down further under the same PD
