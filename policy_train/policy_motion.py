@@ -32,6 +32,7 @@ judges a training episode).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -122,15 +123,20 @@ class Disturbance:
         if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi):
             raise ValueError(f"push_interval must be 0 < lo <= hi s, got {self.push_interval!r}")
 
+    @functools.cached_property
+    def _imu_rotation(self) -> np.ndarray | None:
+        """R of ``imu_tilt`` (None when level), built once: the feed-forward asks every step."""
+        if not any(self.imu_tilt):
+            return None
+        from scipy.spatial.transform import Rotation
+
+        return Rotation.from_rotvec(self.imu_tilt).as_matrix()
+
     def imu_frame(self, v_base: np.ndarray) -> np.ndarray:
-        """A base-frame vector (3,) as the body IMU, turned by ``imu_tilt``, reads it."""
-        rv = np.asarray(self.imu_tilt, dtype=float)
-        a = float(np.linalg.norm(rv))
-        if a == 0.0:
-            return np.asarray(v_base, dtype=float)
-        k = rv / a  # Rodrigues, R^T v: the IMU frame is the base's turned by R
-        v = np.asarray(v_base, dtype=float)
-        return v * np.cos(a) - np.cross(k, v) * np.sin(a) + k * (k @ v) * (1 - np.cos(a))
+        """A base-frame vector (3,) as the body IMU, turned by ``imu_tilt``, reads it: R.T @ v,
+        as :class:`sim.effects.ImuMisalignment` turns its readings."""
+        r = self._imu_rotation
+        return np.asarray(v_base, dtype=float) if r is None else np.asarray(v_base) @ r
 
     def noisy(self, signals: dict, rng: np.random.Generator) -> dict:
         """``signals`` (deploy.observation names) as the robot senses them: the body IMU's

@@ -134,6 +134,19 @@ def test_a_body_imu_mounted_off_reads_the_body_in_its_own_frame():
     np.testing.assert_allclose(yaw.imu_frame(np.array([0.0, 0.0, -1.0])), [0.0, 0.0, -1.0])
     np.testing.assert_allclose(yaw.imu_frame(np.array([1.0, 0.0, 0.0])),
                                [np.cos(0.3), -np.sin(0.3), 0.0], atol=1e-12)
+    # the same reading as the effect library's IMU effects give the diagnoser and the mock
+    from deploy.observation import projected_gravity
+    from sim.effects import ImuBias, ImuMisalignment, apply_imu_effects
+
+    rv, bias = (0.01, -0.02, 0.03), (0.004, -0.002, 0.001)
+    q = np.array([[np.cos(0.1), np.sin(0.1), 0.0, 0.0]])  # the body rolled 11.5 deg
+    w = np.array([[0.1, -0.2, 0.3]])
+    gyro, _, q_imu = apply_imu_effects([ImuMisalignment(rv), ImuBias(bias)], np.zeros(1), w,
+                                       np.zeros((1, 3)), q)
+    true = {"base_ang_vel": w[0], "projected_gravity": projected_gravity(q[0])}
+    s = Disturbance(imu_tilt=rv, gyro_bias=bias).noisy(true, np.random.default_rng(0))
+    np.testing.assert_allclose(s["base_ang_vel"], gyro[0], atol=1e-12)
+    np.testing.assert_allclose(s["projected_gravity"], projected_gravity(q_imu[0]), atol=1e-12)
     with pytest.raises(ValueError, match="imu_tilt"):
         Disturbance(imu_tilt=(0.6, 0.0, 0.0))
     with pytest.raises(ValueError, match="gyro_bias"):
