@@ -212,11 +212,11 @@ def _export(a) -> int:
 def _derive(a) -> int:
     from policy_train.export import derive_policy
 
-    if (a.gains, a.lift_gains, a.t_r, a.shift, a.adapt) == (None,) * 5:
-        raise SystemExit("a2i-train derive: give --gains, --lift-gains, --t-r, --shift and/or "
-                         "--[no-]adapt")
+    if (a.gains, a.lift_gains, a.t_r, a.shift, a.adapt, a.stand) == (None,) * 6:
+        raise SystemExit("a2i-train derive: give --gains, --lift-gains, --t-r, --shift, "
+                         "--[no-]adapt and/or --stand")
     onnx_path, json_path = derive_policy(a.onnx, a.out, a.gains, a.lift_gains, a.t_r, a.shift,
-                                         a.adapt)
+                                         a.adapt, a.stand)
     print(f"wrote {onnx_path} and {json_path} (the network of {a.onnx})")
     return 0
 
@@ -706,6 +706,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="whether the lifted leg's tracking adapter runs: from 2 s into the "
                    "excitation, the torque its tracking shows the leg's model lacks (damping, "
                    "friction, inertia, torque constant) is fed forward (default: the source's)")
+    g.add_argument("--stand", type=_number(0.01, 5.0, "must be in [0.01, 5)"),
+                   default=None, metavar="GAIN",
+                   help="while no leg is lifted, the graph holds the default pose instead of "
+                   "playing the network's own stand: each tick moves every joint's target by "
+                   "the action scale x GAIN of its error, so the PD sag is taken out; "
+                   "refused unless it settles on the simulator (damped gains)")
     r = sub.add_parser("refine", help="add a linear residual on the body's rate and tilt to an "
                        "exported policy's lifts of one leg, tuned by evolution strategies")
     r.add_argument("onnx", help="the exported policy (its .json beside it); a refined policy "

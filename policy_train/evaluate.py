@@ -329,6 +329,10 @@ def _derived(meta: dict) -> str:
     if bool(d.get("adapt", False)) != bool(sched.get("adapt", False)):
         changed.append("the lifted leg's tracking adapter " + ("on" if sched.get("adapt")
                                                                 else "off"))
+    stand = meta.get("stand") or {"mode": "network"}
+    if stand != (d.get("stand") or {"mode": "network"}) and stand.get("mode") == "home":
+        changed.append(f"with no leg lifted, the stand at the default pose of "
+                       f"`policy_train.stand` (gain {stand['gain']:g}) instead of the network's")
     # no "then": a refined policy keeps the derive record of the policy it was refined from
     return (f"; its deploy settings from `a2i-train derive` on `{d.get('policy')}`: "
             f"{', '.join(changed) or 'none changed'}")

@@ -238,7 +238,8 @@ def onnx_bytes(actor: torch.nn.Module, n_in: int) -> bytes:
 
 
 def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
-                  lift_gains=None, t_r=None, shift=None, adapt=None) -> tuple[Path, Path]:
+                  lift_gains=None, t_r=None, shift=None, adapt=None,
+                  stand_gain=None) -> tuple[Path, Path]:
     """Write ``<out_stem>.onnx`` (the source's network, byte for byte) and ``<out_stem>.json``
     (the source's, with other deploy gains or excitation speed) for a policy whose
     checkpoints are gone.
@@ -255,10 +256,12 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     lifts (the JSON's ``shift_by_leg``; the other legs keep theirs); adapt: whether the lifted
     leg's tracking adapter runs (the JSON's ``lift_schedule.adapt``;
     :mod:`deploy.tracking_adapter`: the network never sees the lifted leg's motors, so any
-    policy may have it).
+    policy may have it); stand_gain: the graph plays :mod:`policy_train.stand`'s ``home`` stand
+    with this gain while no leg is lifted, instead of the network's own four-leg stand (the
+    only change to the ONNX: nodes after the network; the JSON's ``stand``).
     The JSON's ``derived_from`` names the source, its commit, the gains, t_r, shift (and
-    ``shift_by_leg``) and adapt it had; its evaluation figures are dropped (they were measured
-    with the source's settings).
+    ``shift_by_leg``), adapt and stand it had; its evaluation figures are dropped (they were
+    measured with the source's settings).
     ValueError on a source that is not an exported policy or on gains deploy refuses."""
     from deploy.policy import PolicyMeta
 
@@ -279,7 +282,14 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                             "shift": sched.shift,
                             **({"shift_by_leg": sched.shift_by_leg} if sched.shift_by_leg
                                else {}),
-                            "adapt": sched.adapt}
+                            "adapt": sched.adapt,
+                            "stand": meta.get("stand", {"mode": "network"})}
+    if stand_gain is not None:
+        from policy_train.stand import add_home_stand
+
+        data = add_home_stand(data, meta["observation"], meta["lift_command"]["none"],
+                              meta["default_pose"], float(stand_gain))
+        meta["stand"] = {"mode": "home", "gain": float(stand_gain)}
     if gains is not None:
         kp, kd = (_per_joint(g, name) for g, name in zip(gains, ("kp", "kd"), strict=True))
         if not (np.all(np.isfinite(kp + kd)) and np.all(kp > 0) and np.all(kd >= 0)):
@@ -318,10 +328,30 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     meta.pop("evaluation_nominal", None)
     onnx_path, json_path = out_stem.with_name(name + ".onnx"), out_stem.with_name(name + ".json")
     PolicyMeta.from_dict(meta, json_path)  # as deploy will read it: ValueError before writing
+    if stand_gain is not None:
+        _check_stand(meta, data)
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
     write_bytes_atomic(onnx_path, data)
     write_text_atomic(json_path, json.dumps(meta, indent=1) + "\n")
     return onnx_path, json_path
+
+
+def _check_stand(meta: dict, data: bytes) -> None:
+    """ValueError unless the policy's stand settles (:func:`policy_train.stand.settle`)."""
+    import tempfile
+
+    from policy_train.stand import MAX_SETTLE_TILT_DEG, MAX_SETTLED_ERROR, SETTLE_S, settle
+
+    with tempfile.TemporaryDirectory() as d:
+        json_path = Path(d) / (meta["name"] + ".json")
+        json_path.with_name(meta["onnx"]).write_bytes(data)
+        json_path.write_text(json.dumps(meta))
+        s = settle(json_path)
+    if not s.settled:
+        raise ValueError(f"the stand does not settle at these gains: after {SETTLE_S:g} s the "
+                         f"joints are {s.error_rad:.3f} rad from the default pose (at most "
+                         f"{MAX_SETTLED_ERROR}) and the body tilted {s.tilt_deg:.1f} deg (at "
+                         f"most {MAX_SETTLE_TILT_DEG:g}); give damped --gains or a lower gain")
 
 
 def _per_joint(gain, name: str) -> np.ndarray:

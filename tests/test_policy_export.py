@@ -535,7 +535,8 @@ def test_derive_turns_the_tracking_adapter_on_and_off(exported, tmp_path):
     ([], "--gains"), (["--shift", "0"], "--shift"), (["--gains", "0,0.5"], "--gains"), (["--gains", "20"], "--gains"),
     (["--gains", "nan,1"], "--gains"), (["--gains", "29,0.7/23,0.5"], "--gains"),
     (["--gains", "29,0.7/29,0.7/0,0.5"], "--gains"), (["--lift-gains", "0,2"], "--lift-gains"),
-    (["--t-r", "0"], "--t-r"), (["--t-r", "x"], "--t-r")])
+    (["--t-r", "0"], "--t-r"), (["--t-r", "x"], "--t-r"), (["--stand", "0"], "--stand"),
+    (["--stand", "5"], "--stand"), (["--stand", "x"], "--stand")])
 def test_bad_derive_exits_with_one_line(extra, hint, exported, tmp_path, capsys):
     from policy_train.cli import main
 
@@ -892,3 +893,60 @@ def test_eval_names_the_training_gains_one_pair_or_per_joint():
     assert _gains_note(meta) == ""
     meta["kp"] = [30.0, 29.0, 23.0] * 4
     assert _gains_note(meta) == "; trained at hip / thigh / calf kp 29 / 29 / 23, kd 6 / 6 / 0.8"
+
+
+def test_derive_stand_holds_the_default_pose_while_no_leg_is_lifted(exported, tmp_path, capsys):
+    """`derive --stand GAIN` (v27): with the lift command none the graph plays the integral
+    stand of ``policy_train.stand`` (actions -GAIN/s x the joint_pos term), any other command
+    the network, whose weights stay the source's; with damped gains the stand brings the joints
+    to the default pose on the free-base simulator, the PD sag taken out; at the training's
+    soft gains it tips the robot and derive refuses it; a second stand is refused."""
+    from policy_train.cli import main
+    from policy_train.stand import settle
+
+    d, _ = exported
+    capsys.readouterr()
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "soft"),
+                 "--stand", "0.2"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not settle" in err[0]
+    assert not (tmp_path / "soft.json").exists()
+
+    damped = ["--gains", "29,8/29,8/26,1.2"]
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "s"), *damped,
+                 "--stand", "0.2"]) == 0
+    meta = json.loads((tmp_path / "s.json").read_text())
+    assert meta["stand"] == {"mode": "home", "gain": 0.2}
+    assert meta["derived_from"]["stand"] == {"mode": "network"}
+    from policy_train.evaluate import _derived
+
+    assert _derived(meta).endswith("the stand at the default pose of `policy_train.stand` "
+                                   "(gain 0.2) instead of the network's")
+    names = [t["name"] for t in meta["observation"]["terms"]]
+    at = {n: sum(t["size"] for t in meta["observation"]["terms"][:names.index(n)]) for n in names}
+    c_scale = meta["observation"]["terms"][names.index("lift_command")]["scale"]
+    x = np.random.default_rng(5).normal(0, 0.5, (6, meta["observation"]["size"])).astype(np.float32)
+    x[:, at["lift_command"]] = np.array([0, 1, 2, 3, 4, 0]) * c_scale
+    run = {p: ort.InferenceSession(str(p), providers=["CPUExecutionProvider"])
+           for p in (d / "pol.onnx", tmp_path / "s.onnx")}
+    y_src, y = (run[p].run(["actions"], {"obs": x})[0] for p in run)
+    jp = x[:, at["joint_pos"]:at["joint_pos"] + 12]
+    none = x[:, at["lift_command"]] == 0
+    assert np.allclose(y[none], -0.2 * jp[none], atol=1e-6)
+    assert np.array_equal(y[~none], y_src[~none])
+    src_w = {i.name: onnx.numpy_helper.to_array(i) for i in onnx.load(d / "pol.onnx").graph.initializer}
+    new_w = {i.name: onnx.numpy_helper.to_array(i)
+             for i in onnx.load(tmp_path / "s.onnx").graph.initializer}
+    assert all(np.array_equal(w, new_w[k]) for k, w in src_w.items())
+    # the same gains without the stand: the network's own (here barely trained) stand
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "n"), *damped]) == 0
+    assert not settle(tmp_path / "n.json").settled
+    s = settle(tmp_path / "s.json")
+    assert s.settled and s.error_rad < 0.01
+
+    capsys.readouterr()
+    assert main(["derive", str(tmp_path / "s.onnx"), "--out", str(tmp_path / "t"),
+                 "--stand", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "already has a stand" in err[0]
+    assert not (tmp_path / "t.json").exists()

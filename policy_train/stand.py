@@ -1,0 +1,168 @@
+"""The four-leg stand a policy graph plays while no leg is lifted (lift command ``none``).
+
+A network trained with one side's lifts and played mirrored for the other (``mirrored_legs``)
+learns, with the command ``none``, a stand that already leans away from the leg it lifts most:
+v26's puts the centre of mass 60-70 mm right of the feet's centre within 2 s, ready for FL and
+twice as far from ready for FR (``docs/policy-training.md``, "Stop 48"). A script that stands
+the robot on the policy before an FR lift then starts that lift where the policy never started
+it in training or evaluation, which start from the default pose with the command given at once.
+
+``home`` replaces that stand in the graph with a fixed law: while the newest frame's command is
+``none`` the actions are ``-gain / s * o_q``, ``o_q = s (q - q_default)`` the frame's
+``joint_pos`` term, so each 50 Hz tick moves every joint's target by ``-scale_a * gain`` of its
+error from the default pose. It integrates: the joints settle at the default pose itself, the
+sag of the PD law under the body's weight taken out (at gain 1 and the action scale 0.1, a
+tenth of the error per tick, about 0.2 s). The stand is then left-right symmetric and the
+start every lift was evaluated from. Any other command plays the network as before.
+
+The integral needs damped joints: at the training's gains (kp 20, kd 0.5 on every joint) the
+body rocks on its legs and tips over within 2-4 s at gains 0.1-0.5, where deploy's gains since
+v19 (kd 8 on hips and thighs) settle it. So :func:`settle` plays the stand on the free-base
+simulator and ``a2i-train derive --stand`` refuses a policy whose stand does not settle.
+
+The edit is made on the ONNX graph itself (nodes appended after the network's output), so the
+network's weights stay byte for byte the source's and every script that runs the graph, deploy
+or a checker's, gets the same stand.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+STAND_MODES = ("network", "home")
+"""``network``: the graph as trained; ``home``: the integral stand at the default pose."""
+
+_PREFIX = "stand_"  # names of what this module adds to a graph
+
+
+def _term_columns(obs_terms, name: str) -> tuple[int, int, float, np.ndarray | None]:
+    """(first column, size, scale, offset) of term ``name`` in one observation frame."""
+    off = 0
+    for t in obs_terms:
+        if t["name"] == name:
+            offset = t.get("offset")
+            return off, int(t["size"]), float(t["scale"]), \
+                None if offset is None else np.asarray(offset, float)
+        off += int(t["size"])
+    raise ValueError(f"the observation has no {name} term")
+
+
+def has_stand(model) -> bool:
+    """Whether the ONNX graph already carries a stand added here."""
+    return any(n.name.startswith(_PREFIX) for n in model.graph.node)
+
+
+def add_home_stand(onnx_bytes: bytes, observation: dict, lift_none_value: float,
+                   default_pose, gain: float = 1.0) -> bytes:
+    """The graph ``onnx_bytes`` with the ``home`` stand (module docstring) where the newest
+    frame's ``lift_command`` is ``lift_none_value``. observation: the JSON's ``observation``
+    (terms, in frame order; the newest frame first); default_pose: the JSON's (12, rad), which
+    the ``joint_pos`` term must be measured from; gain: raw action per unit of
+    ``joint_pos`` error, in (0, 5). ValueError on a graph that already has a stand, on terms
+    without ``joint_pos`` / ``lift_command`` or measured from another pose."""
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    if not (np.isfinite(gain) and 0 < gain < 5):
+        raise ValueError(f"the stand's gain must be in (0, 5), got {gain}")
+    terms = observation["terms"]
+    q_at, q_size, q_scale, q_offset = _term_columns(terms, "joint_pos")
+    c_at, _, c_scale, _ = _term_columns(terms, "lift_command")
+    if q_size != 12:
+        raise ValueError(f"joint_pos has {q_size} values, expected 12")
+    if q_offset is None or not np.allclose(q_offset, default_pose, atol=1e-9):
+        raise ValueError("joint_pos is not measured from the default pose: the stand would "
+                         "hold another one")
+    model = onnx.load_from_string(onnx_bytes)
+    if has_stand(model):
+        raise ValueError("the graph already has a stand; derive from its source instead")
+    g = model.graph
+    if len(g.output) != 1:
+        raise ValueError(f"expected one graph output, got {len(g.output)}")
+    out = g.output[0].name
+    net_out = _PREFIX + "network_actions"
+    for n in g.node:
+        n.output[:] = [net_out if o == out else o for o in n.output]
+    obs = g.input[0].name
+
+    def const(name, value, dtype=np.float32):
+        g.initializer.append(numpy_helper.from_array(np.asarray(value, dtype), _PREFIX + name))
+        return _PREFIX + name
+
+    def node(op, inputs, name, **attrs):
+        g.node.append(helper.make_node(op, inputs, [_PREFIX + name], name=_PREFIX + name,
+                                       **attrs))
+        return _PREFIX + name
+
+    axis1 = const("axis1", [1], np.int64)
+    q = node("Slice", [obs, const("q_lo", [q_at], np.int64),
+                       const("q_hi", [q_at + 12], np.int64), axis1], "joint_pos")
+    home = node("Mul", [q, const("gain", -gain / q_scale)], "home_actions")
+    c = node("Slice", [obs, const("c_lo", [c_at], np.int64),
+                       const("c_hi", [c_at + 1], np.int64), axis1], "lift_command")
+    # the command's values are c_scale apart: nearer than half of that is the value
+    dist = node("Abs", [node("Sub", [c, const("none", lift_none_value * c_scale)], "c_minus")],
+                "c_dist")
+    none = node("Less", [dist, const("half_step", 0.5 * abs(c_scale))], "no_lift")
+    g.node.append(helper.make_node("Where", [none, home, net_out], [out],
+                                   name=_PREFIX + "select"))
+    g.value_info.append(helper.make_tensor_value_info(net_out, TensorProto.FLOAT,
+                                                      ["batch", 12]))
+    onnx.checker.check_model(model)
+    return model.SerializeToString()
+
+
+SETTLE_S = 4.0
+"""s of standing :func:`settle` plays."""
+MAX_SETTLED_ERROR = 0.02
+"""rad: the joints' largest distance from the default pose at the end of :func:`settle`."""
+MAX_SETTLE_TILT_DEG = 10.0
+"""deg: the body's largest tilt during :func:`settle`."""
+
+
+@dataclass(frozen=True)
+class Settle:
+    """How a policy's stand (lift command none) stands the robot: after :data:`SETTLE_S` s
+    from the default pose on the level floor of the URDF's model, nothing else perturbing it.
+    error_rad: the joints' largest distance from the default pose at the end; tilt_deg: the
+    body's largest tilt on the way."""
+
+    error_rad: float
+    tilt_deg: float
+
+    @property
+    def settled(self) -> bool:
+        return self.error_rad <= MAX_SETTLED_ERROR and self.tilt_deg <= MAX_SETTLE_TILT_DEG
+
+
+def settle(json_path, seconds: float = SETTLE_S) -> Settle:
+    """Play the policy at ``json_path`` (its ONNX beside it) with no lift command, as on board
+    (50 Hz, the JSON's gains, 1 kHz physics), from the default pose."""
+    from calib.joints import model_to_sdk, sdk_to_model
+    from deploy.observation import build_observation, projected_gravity
+    from deploy.policy import PolicyMeta, PolicyRunner
+    from sim.free_base_run import free_base_sim
+
+    pm = PolicyMeta.load(json_path)
+    runner = PolicyRunner(pm)
+    dt = 0.001
+    n_ctrl = round(pm.control_dt / dt)
+    sim = free_base_sim(dt, sdk_to_model(pm.default_pose))
+    runner.reset(model_to_sdk(sim.q))
+    kp, kd = sdk_to_model(pm.kp), sdk_to_model(pm.kd)
+    zeros3 = np.zeros(3)
+    tilt = 0.0
+    for k in range(round(seconds / dt)):
+        if k % n_ctrl == 0:
+            signals = {"base_lin_vel": zeros3, "base_ang_vel": sim.base_ang_vel,
+                       "projected_gravity": projected_gravity(sim.base_quat_wxyz),
+                       "joint_pos": sim.q_sdk, "joint_vel": sim.dq_sdk,
+                       "previous_actions": runner.prev_actions, "commands": zeros3,
+                       "lift_command": pm.lift_value(None)}
+            runner.step(runner.act(build_observation(pm.observation, signals)))
+            sim.set_command(sdk_to_model(runner.target), np.zeros(12), kp, kd, 0.0)
+        sim.step()
+        tilt = max(tilt, sim.base_tilt)
+    return Settle(float(np.abs(sim.q_sdk - pm.default_pose).max()), float(np.degrees(tilt)))
