@@ -285,11 +285,12 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                             "adapt": sched.adapt,
                             "stand": meta.get("stand", {"mode": "network"})}
     if stand_gain is not None:
-        from policy_train.stand import add_home_stand
+        from policy_train.stand import apply_stand, has_stand
 
-        data = add_home_stand(data, meta["observation"], meta["lift_command"]["none"],
-                              meta["default_pose"], float(stand_gain))
+        if meta.get("stand", {"mode": "network"}) != {"mode": "network"} or has_stand(data):
+            raise ValueError("the graph already has a stand; derive from its source instead")
         meta["stand"] = {"mode": "home", "gain": float(stand_gain)}
+        data = apply_stand(data, meta)
     if gains is not None:
         kp, kd = (_per_joint(g, name) for g, name in zip(gains, ("kp", "kd"), strict=True))
         if not (np.all(np.isfinite(kp + kd)) and np.all(kp > 0) and np.all(kd >= 0)):

@@ -399,11 +399,13 @@ def export_refined(source_onnx, out_stem, params: np.ndarray, cfg: RefineConfig,
     from, its generations and settings) and its evaluation cleared."""
     from deploy.policy import PolicyMeta
     from policy_train.export import git_commit, onnx_bytes
+    from policy_train.stand import apply_stand
 
     meta, actor, res = build_actor(source_onnx, cfg.leg, 1, meta_json)
     D, b = unpack(params)
     res.set_residual(D, b)
-    data = onnx_bytes(actor, int(meta["observation"]["size"]))
+    # the JSON's stand is kept, so its graph gets it too (derive --stand)
+    data = apply_stand(onnx_bytes(actor, int(meta["observation"]["size"])), meta)
     out_stem = Path(out_stem)
     name = out_stem.name.removesuffix(".onnx")
     src = Path(source_onnx)

@@ -50,7 +50,12 @@ def _term_columns(obs_terms, name: str) -> tuple[int, int, float, np.ndarray | N
 
 
 def has_stand(model) -> bool:
-    """Whether the ONNX graph already carries a stand added here."""
+    """Whether the ONNX graph (a ModelProto or its bytes) already carries a stand added
+    here."""
+    if isinstance(model, bytes):
+        import onnx
+
+        model = onnx.load_from_string(model)
     return any(n.name.startswith(_PREFIX) for n in model.graph.node)
 
 
@@ -113,6 +118,19 @@ def add_home_stand(onnx_bytes: bytes, observation: dict, lift_none_value: float,
     onnx.checker.check_model(model)
     return model.SerializeToString()
 
+
+
+def apply_stand(onnx_bytes: bytes, meta: dict) -> bytes:
+    """The graph with the stand the policy JSON ``meta`` names (its ``stand``; absent or
+    ``network``: unchanged): for a graph rebuilt from a policy's network (``a2i-train refine``),
+    so that its JSON's stand is the one it plays."""
+    stand = meta.get("stand") or {"mode": "network"}
+    if stand.get("mode") == "network":
+        return onnx_bytes
+    if stand.get("mode") != "home":
+        raise ValueError(f"unknown stand {stand.get('mode')!r}; known: {', '.join(STAND_MODES)}")
+    return add_home_stand(onnx_bytes, meta["observation"], meta["lift_command"]["none"],
+                          meta["default_pose"], float(stand["gain"]))
 
 SETTLE_S = 4.0
 """s of standing :func:`settle` plays."""

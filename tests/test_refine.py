@@ -180,19 +180,25 @@ def test_bad_refine_exits_with_one_line(extra, hint, tmp_path):
 
 
 def test_refining_a_derived_policy_keeps_its_deploy_settings(tmp_path):
-    """v26 is v22's graph (v21's network and a residual) with a2i-train derive's settings (the
-    front lifts' 2 s shift, the tracking adapter): refined further, the rollouts play and the
-    new JSON keeps v26's, not v21's."""
+    """v27 is v22's graph (v21's network and a residual) with a2i-train derive's settings (the
+    front lifts' 2 s shift, the tracking adapter, the stand at the default pose): refined
+    further, the rollouts play and the new JSON keeps v27's, not v21's, and its graph plays
+    the stand its JSON names."""
+    v27 = V21.with_name("tripod_go2_v27.onnx")
     v26 = V21.with_name("tripod_go2_v26.onnx")
-    _, json_path = refine(v26, tmp_path / "r", 1, RefineConfig(pairs=1, episodes=1),
+    _, json_path = refine(v27, tmp_path / "r", 1, RefineConfig(pairs=1, episodes=1),
                           tmp_path / "s.json", log=lambda s: None)
-    src, new = (json.loads(p.with_suffix(".json").read_text()) for p in (v26, json_path))
-    # one generation played on top of v26's own
+    src, new = (json.loads(p.with_suffix(".json").read_text()) for p in (v27, json_path))
+    # one generation played on top of v27's own
     assert len(new["refined_from"]["generations"]) == len(src["refined_from"]["generations"]) + 1
-    for key in ("kp", "kd", "lift_schedule"):
+    for key in ("kp", "kd", "lift_schedule", "stand"):
         assert new[key] == src[key], key
     assert new["refined_from"]["policy"] == V21.name
-    assert new["refined_from"]["continued_from"]["policy"] == v26.name
+    assert new["refined_from"]["continued_from"]["policy"] == v27.name
+    x = np.random.default_rng(2).normal(0, 0.3, (2, src["observation"]["size"])).astype(np.float32)
+    x[:, 48] = 0.0  # lift command none (its scale 0.25: 0.25 per leg)
+    y = ort.InferenceSession(str(json_path.with_suffix(".onnx"))).run(None, {"obs": x})[0]
+    assert np.allclose(y, -src["stand"]["gain"] * x[:, 9:21], atol=1e-6)
     meta, _, _ = build_actor(V21, "FL", 1, v26.with_suffix(".json"))
     assert meta["lift_schedule"]["adapt"] and meta["lift_schedule"]["shift_by_leg"]["FL"] == 2
     with pytest.raises(ValueError, match="observation is not its network's"):
