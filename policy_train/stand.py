@@ -2,8 +2,8 @@
 
 A network trained with one side's lifts and played mirrored for the other (``mirrored_legs``)
 learns, with the command ``none``, a stand that already leans away from the leg it lifts most:
-v26's puts the centre of mass 60-70 mm right of the feet's centre within 2 s, ready for FL and
-twice as far from ready for FR (``docs/policy-training.md``, "Stop 48"). A script that stands
+v26's puts the centre of mass 55-70 mm right of the feet's centre within 2 s, ready for FL and
+on the wrong side for FR (``docs/policy-training.md``, "Stop 48"). A script that stands
 the robot on the policy before an FR lift then starts that lift where the policy never started
 it in training or evaluation, which start from the default pose with the command given at once.
 
@@ -11,12 +11,13 @@ it in training or evaluation, which start from the default pose with the command
 ``none`` the actions are ``-gain / s * o_q``, ``o_q = s (q - q_default)`` the frame's
 ``joint_pos`` term, so each 50 Hz tick moves every joint's target by ``-scale_a * gain`` of its
 error from the default pose. It integrates: the joints settle at the default pose itself, the
-sag of the PD law under the body's weight taken out (at gain 1 and the action scale 0.1, a
-tenth of the error per tick, about 0.2 s). The stand is then left-right symmetric and the
-start every lift was evaluated from. Any other command plays the network as before.
+sag of the PD law under the body's weight taken out (v27: gain 0.2 and the action scale 0.1,
+2 % of the error per tick, about 1 s; at gain 1 the evaluation lost rear lifts to falls after
+the leg was set down). The stand is then left-right symmetric and the start every lift was
+evaluated from. Any other command plays the network as before.
 
 The integral needs damped joints: at the training's gains (kp 20, kd 0.5 on every joint) the
-body rocks on its legs and tips over within 2-4 s at gains 0.1-0.5, where deploy's gains since
+body rocks on its legs and tips over within 2-4 s at stand gains 0.1-0.5, where deploy's gains since
 v19 (kd 8 on hips and thighs) settle it. So :func:`settle` plays the stand on the free-base
 simulator and ``a2i-train derive --stand`` refuses a policy whose stand does not settle.
 
@@ -117,7 +118,6 @@ def add_home_stand(onnx_bytes: bytes, observation: dict, lift_none_value: float,
                                                       ["batch", 12]))
     onnx.checker.check_model(model)
     return model.SerializeToString()
-
 
 
 def apply_stand(onnx_bytes: bytes, meta: dict) -> bytes:
