@@ -12,13 +12,13 @@ it in training or evaluation, which start from the default pose with the command
 ``joint_pos`` term, so each 50 Hz tick moves every joint's target by ``-scale_a * gain`` of its
 error from the default pose. It integrates: the joints settle at the default pose itself, the
 sag of the PD law under the body's weight taken out (v27: gain 0.2 and the action scale 0.1,
-2 % of the error per tick, about 1 s; at gain 1 the evaluation lost rear lifts to falls after
-the leg was set down). The stand is then left-right symmetric and the start every lift was
+2 % of the error per tick, a time constant of about 1 s; at gain 1 the evaluation lost rear
+lifts to falls after the leg was set down). The stand is then left-right symmetric and the start every lift was
 evaluated from. Any other command plays the network as before.
 
 The integral needs damped joints: at the training's gains (kp 20, kd 0.5 on every joint) the
-body rocks on its legs and tips over within 2-4 s at stand gains 0.1-0.5, where deploy's gains since
-v19 (kd 8 on hips and thighs) settle it. So :func:`settle` plays the stand on the free-base
+body rocks on its legs and tips over within 2-4 s at stand gains 0.1-0.5, where deploy's gains
+since v20 (kd 8 on hips and thighs) settle it. So :func:`settle` plays the stand on the free-base
 simulator and ``a2i-train derive --stand`` refuses a policy whose stand does not settle.
 
 The edit is made on the ONNX graph itself (nodes appended after the network's output), so the

@@ -927,7 +927,8 @@ def test_derive_stand_holds_the_default_pose_while_no_leg_is_lifted(exported, tm
     names = [t["name"] for t in meta["observation"]["terms"]]
     at = {n: sum(t["size"] for t in meta["observation"]["terms"][:names.index(n)]) for n in names}
     c_scale = meta["observation"]["terms"][names.index("lift_command")]["scale"]
-    x = np.random.default_rng(5).normal(0, 0.5, (6, meta["observation"]["size"])).astype(np.float32)
+    x = np.random.default_rng(5).normal(0, 0.5, (6, meta["observation"]["size"]))
+    x = x.astype(np.float32)
     x[:, at["lift_command"]] = np.array([0, 1, 2, 3, 4, 0]) * c_scale
     run = {p: ort.InferenceSession(str(p), providers=["CPUExecutionProvider"])
            for p in (d / "pol.onnx", tmp_path / "s.onnx")}
@@ -936,9 +937,8 @@ def test_derive_stand_holds_the_default_pose_while_no_leg_is_lifted(exported, tm
     none = x[:, at["lift_command"]] == 0
     assert np.allclose(y[none], -0.2 * jp[none], atol=1e-6)
     assert np.array_equal(y[~none], y_src[~none])
-    src_w = {i.name: onnx.numpy_helper.to_array(i) for i in onnx.load(d / "pol.onnx").graph.initializer}
-    new_w = {i.name: onnx.numpy_helper.to_array(i)
-             for i in onnx.load(tmp_path / "s.onnx").graph.initializer}
+    src_w, new_w = ({i.name: onnx.numpy_helper.to_array(i) for i in onnx.load(p).graph.initializer}
+                    for p in (d / "pol.onnx", tmp_path / "s.onnx"))
     assert all(np.array_equal(w, new_w[k]) for k, w in src_w.items())
     # the same gains without the stand: the network's own (here barely trained) stand
     assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "n"), *damped]) == 0

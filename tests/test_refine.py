@@ -180,26 +180,41 @@ def test_bad_refine_exits_with_one_line(extra, hint, tmp_path):
 
 
 def test_refining_a_derived_policy_keeps_its_deploy_settings(tmp_path):
-    """v27 is v22's graph (v21's network and a residual) with a2i-train derive's settings (the
-    front lifts' 2 s shift, the tracking adapter, the stand at the default pose): refined
-    further, the rollouts play and the new JSON keeps v27's, not v21's, and its graph plays
-    the stand its JSON names."""
-    v27 = V21.with_name("tripod_go2_v27.onnx")
+    """v26 is v22's graph (v21's network and a residual) with a2i-train derive's settings (the
+    front lifts' 2 s shift, the tracking adapter): refined further, the rollouts play and the
+    new JSON keeps v26's, not v21's."""
     v26 = V21.with_name("tripod_go2_v26.onnx")
-    _, json_path = refine(v27, tmp_path / "r", 1, RefineConfig(pairs=1, episodes=1),
+    _, json_path = refine(v26, tmp_path / "r", 1, RefineConfig(pairs=1, episodes=1),
                           tmp_path / "s.json", log=lambda s: None)
-    src, new = (json.loads(p.with_suffix(".json").read_text()) for p in (v27, json_path))
-    # one generation played on top of v27's own
+    src, new = (json.loads(p.with_suffix(".json").read_text()) for p in (v26, json_path))
+    # one generation played on top of v26's own
     assert len(new["refined_from"]["generations"]) == len(src["refined_from"]["generations"]) + 1
-    for key in ("kp", "kd", "lift_schedule", "stand"):
+    for key in ("kp", "kd", "lift_schedule"):
         assert new[key] == src[key], key
     assert new["refined_from"]["policy"] == V21.name
-    assert new["refined_from"]["continued_from"]["policy"] == v27.name
-    x = np.random.default_rng(2).normal(0, 0.3, (2, src["observation"]["size"])).astype(np.float32)
-    x[:, 48] = 0.0  # lift command none (its scale 0.25: 0.25 per leg)
-    y = ort.InferenceSession(str(json_path.with_suffix(".onnx"))).run(None, {"obs": x})[0]
-    assert np.allclose(y, -src["stand"]["gain"] * x[:, 9:21], atol=1e-6)
+    assert new["refined_from"]["continued_from"]["policy"] == v26.name
     meta, _, _ = build_actor(V21, "FL", 1, v26.with_suffix(".json"))
     assert meta["lift_schedule"]["adapt"] and meta["lift_schedule"]["shift_by_leg"]["FL"] == 2
     with pytest.raises(ValueError, match="observation is not its network's"):
         build_actor(V21, "FL", 1, V21.with_name("tripod_go2_v7.json"))
+
+
+def test_refining_a_policy_with_a_stand_keeps_it_in_its_graph(tmp_path):
+    """The candidate v27 is v26 whose graph stands at the default pose while no leg is lifted
+    (`derive --stand`): refined further (beside the network its refinement names, as a
+    refinement needs), the new JSON names the stand and the new graph plays it."""
+    import shutil
+
+    v27 = V21.parent / "candidates" / "tripod_go2_v27.onnx"
+    for f in (V21, V21.with_suffix(".json"), v27, v27.with_suffix(".json")):
+        shutil.copy(f, tmp_path / f.name)
+    _, json_path = refine(tmp_path / v27.name, tmp_path / "r", 1,
+                          RefineConfig(pairs=1, episodes=1), tmp_path / "s.json",
+                          log=lambda s: None)
+    src = json.loads(v27.with_suffix(".json").read_text())
+    new = json.loads(json_path.read_text())
+    assert new["stand"] == src["stand"] == {"mode": "home", "gain": 0.2}
+    x = np.random.default_rng(2).normal(0, 0.3, (2, src["observation"]["size"])).astype(np.float32)
+    x[:, 48] = 0.0  # lift command none (its scale 0.25: 0.25 per leg)
+    y = ort.InferenceSession(str(json_path.with_suffix(".onnx"))).run(None, {"obs": x})[0]
+    assert np.allclose(y, -0.2 * x[:, 9:21], atol=1e-6)
