@@ -13,8 +13,9 @@ it in training or evaluation, which start from the default pose with the command
 error from the default pose. It integrates: the joints settle at the default pose itself, the
 sag of the PD law under the body's weight taken out (v27: gain 0.2 and the action scale 0.1,
 2 % of the error per tick, a time constant of about 1 s; at gain 1 the evaluation lost rear
-lifts to falls after the leg was set down). The stand is then left-right symmetric and the start every lift was
-evaluated from. Any other command plays the network as before.
+lifts to falls after the leg was set down, and at 0.2 still some: v27 is a candidate). The
+stand is then left-right symmetric and the start every lift was evaluated from. Any other
+command plays the network as before.
 
 The integral needs damped joints: at the training's gains (kp 20, kd 0.5 on every joint) the
 body rocks on its legs and tips over within 2-4 s at stand gains 0.1-0.5, where deploy's gains
