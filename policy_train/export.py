@@ -285,9 +285,10 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                             "adapt": sched.adapt,
                             "stand": meta.get("stand", {"mode": "network"})}
     if stand_gain is not None:
-        from policy_train.stand import apply_stand, has_stand
+        from policy_train.stand import apply_stand
 
-        if meta.get("stand", {"mode": "network"}) != {"mode": "network"} or has_stand(data):
+        # a stand in the graph without one in the JSON is refused by apply_stand
+        if meta.get("stand", {"mode": "network"}) != {"mode": "network"}:
             raise ValueError("the graph already has a stand; derive from its source instead")
         meta["stand"] = {"mode": "home", "gain": float(stand_gain)}
         data = apply_stand(data, meta)

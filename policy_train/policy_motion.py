@@ -164,6 +164,19 @@ def load_policy(onnx_path) -> PolicyRunner:
     return PolicyRunner(PolicyMeta.load(p.with_suffix(".json")))
 
 
+def policy_signals(sim, runner: PolicyRunner, lift_value: float) -> dict:
+    """The signals of :func:`deploy.observation.build_observation` as the robot gives them on
+    the simulator ``sim`` (:class:`sim.go2.Go2Sim`), true (no noise or mounting): body gyro,
+    projected gravity, joints in SDK order, ``runner``'s previous raw actions, zero commands,
+    ``base_lin_vel`` zero-filled (the only source deploy has), and ``lift_value``."""
+    zeros3 = np.zeros(3)
+    return {"base_lin_vel": zeros3, "base_ang_vel": sim.base_ang_vel,
+            "projected_gravity": projected_gravity(sim.base_quat_wxyz),
+            "joint_pos": sim.q_sdk, "joint_vel": sim.dq_sdk,
+            "previous_actions": runner.prev_actions, "commands": zeros3,
+            "lift_command": lift_value}
+
+
 def run_policy_a2i(
     policy,
     leg: str,
@@ -324,16 +337,7 @@ def run_policy_a2i(
                                 sim.q[idx_m], sim.dq[idx_m], model, applied)
             handback = phase == _DONE and lift_on
             lift_on = 0 <= phase < _DONE
-            signals = {
-                "base_lin_vel": zeros3,
-                "base_ang_vel": sim.base_ang_vel,
-                "projected_gravity": projected_gravity(sim.base_quat_wxyz),
-                "joint_pos": sim.q_sdk,
-                "joint_vel": sim.dq_sdk,
-                "previous_actions": runner.prev_actions,
-                "commands": zeros3,
-                "lift_command": lift_value if lift_on else none_value,
-            }
+            signals = policy_signals(sim, runner, lift_value if lift_on else none_value)
             if disturbance is not None:
                 signals = disturbance.noisy(signals, rng)
             obs = build_observation(pb.observation, signals)

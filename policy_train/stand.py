@@ -52,12 +52,7 @@ def _term_columns(obs_terms, name: str) -> tuple[int, int, float, np.ndarray | N
 
 
 def has_stand(model) -> bool:
-    """Whether the ONNX graph (a ModelProto or its bytes) already carries a stand added
-    here."""
-    if isinstance(model, bytes):
-        import onnx
-
-        model = onnx.load_from_string(model)
+    """Whether the ONNX graph (a ModelProto) already carries a stand added here."""
     return any(n.name.startswith(_PREFIX) for n in model.graph.node)
 
 
@@ -133,6 +128,7 @@ def apply_stand(onnx_bytes: bytes, meta: dict) -> bytes:
     return add_home_stand(onnx_bytes, meta["observation"], meta["lift_command"]["none"],
                           meta["default_pose"], float(stand["gain"]))
 
+
 SETTLE_S = 4.0
 """s of standing :func:`settle` plays."""
 MAX_SETTLED_ERROR = 0.02
@@ -160,8 +156,9 @@ def settle(json_path, seconds: float = SETTLE_S) -> Settle:
     """Play the policy at ``json_path`` (its ONNX beside it) with no lift command, as on board
     (50 Hz, the JSON's gains, 1 kHz physics), from the default pose."""
     from calib.joints import model_to_sdk, sdk_to_model
-    from deploy.observation import build_observation, projected_gravity
+    from deploy.observation import build_observation
     from deploy.policy import PolicyMeta, PolicyRunner
+    from policy_train.policy_motion import policy_signals
     from sim.free_base_run import free_base_sim
 
     pm = PolicyMeta.load(json_path)
@@ -171,15 +168,10 @@ def settle(json_path, seconds: float = SETTLE_S) -> Settle:
     sim = free_base_sim(dt, sdk_to_model(pm.default_pose))
     runner.reset(model_to_sdk(sim.q))
     kp, kd = sdk_to_model(pm.kp), sdk_to_model(pm.kd)
-    zeros3 = np.zeros(3)
     tilt = 0.0
     for k in range(round(seconds / dt)):
         if k % n_ctrl == 0:
-            signals = {"base_lin_vel": zeros3, "base_ang_vel": sim.base_ang_vel,
-                       "projected_gravity": projected_gravity(sim.base_quat_wxyz),
-                       "joint_pos": sim.q_sdk, "joint_vel": sim.dq_sdk,
-                       "previous_actions": runner.prev_actions, "commands": zeros3,
-                       "lift_command": pm.lift_value(None)}
+            signals = policy_signals(sim, runner, pm.lift_value(None))
             runner.step(runner.act(build_observation(pm.observation, signals)))
             sim.set_command(sdk_to_model(runner.target), np.zeros(12), kp, kd, 0.0)
         sim.step()
