@@ -342,6 +342,18 @@ def _number(lo: float, hi: float, what: str):
 
 
 _MINUTES = _number(0.0, math.inf, "must be a number of minutes >= 0")
+_STAND_GAIN = _number(0.01, 5.0, "a home stand's gain must be in [0.01, 5)")
+
+
+def _stand(text: str) -> dict:
+    """argparse type for derive --stand: ``hold``, or the home stand's gain."""
+    if text == "hold":
+        return {"mode": "hold"}
+    try:
+        float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected hold or a gain, got {text!r}") from None
+    return {"mode": "home", "gain": _STAND_GAIN(text)}
 
 
 def _tip_limits(text: str):
@@ -706,12 +718,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="whether the lifted leg's tracking adapter runs: from 2 s into the "
                    "excitation, the torque its tracking shows the leg's model lacks (damping, "
                    "friction, inertia, torque constant) is fed forward (default: the source's)")
-    g.add_argument("--stand", type=_number(0.01, 5.0, "must be in [0.01, 5)"),
-                   default=None, metavar="GAIN",
-                   help="while no leg is lifted, the graph holds the default pose instead of "
-                   "playing the network's own stand: each tick moves every joint's target by "
-                   "the action scale x GAIN of its error, so the PD sag is taken out; "
-                   "refused unless it settles on the simulator (damped gains)")
+    g.add_argument("--stand", type=_stand, default=None, metavar="GAIN|hold",
+                   help="while no leg is lifted, the graph stands the robot itself instead of "
+                   "playing the network's own stand. GAIN (in [0.01, 5)): at the default pose, "
+                   "each tick moving every joint's target by the action scale x GAIN of its "
+                   "error, so the PD sag is taken out; hold: zero actions, the targets held "
+                   "(the joints sag under the PD law). Refused unless it settles on the "
+                   "simulator (damped gains)")
     r = sub.add_parser("refine", help="add a linear residual on the body's rate and tilt to an "
                        "exported policy's lifts of one leg, tuned by evolution strategies")
     r.add_argument("onnx", help="the exported policy (its .json beside it); a refined policy "

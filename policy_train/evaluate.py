@@ -330,9 +330,14 @@ def _derived(meta: dict) -> str:
         changed.append("the lifted leg's tracking adapter " + ("on" if sched.get("adapt")
                                                                 else "off"))
     stand = meta.get("stand") or {"mode": "network"}
-    if stand != (d.get("stand") or {"mode": "network"}) and stand.get("mode") == "home":
-        changed.append(f"with no leg lifted, the stand at the default pose of "
-                       f"`policy_train.stand` (gain {stand['gain']:g}) instead of the network's")
+    if stand != (d.get("stand") or {"mode": "network"}):
+        if stand.get("mode") == "home":
+            changed.append(f"with no leg lifted, the stand at the default pose of "
+                           f"`policy_train.stand` (gain {stand['gain']:g}) instead of the "
+                           "network's")
+        elif stand.get("mode") == "hold":
+            changed.append("with no leg lifted, the joint targets held (`policy_train.stand`'s "
+                           "hold) instead of the network's stand")
     # no "then": a refined policy keeps the derive record of the policy it was refined from
     return (f"; its deploy settings from `a2i-train derive` on `{d.get('policy')}`: "
             f"{', '.join(changed) or 'none changed'}")

@@ -239,7 +239,7 @@ def onnx_bytes(actor: torch.nn.Module, n_in: int) -> bytes:
 
 def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                   lift_gains=None, t_r=None, shift=None, adapt=None,
-                  stand_gain=None) -> tuple[Path, Path]:
+                  stand=None) -> tuple[Path, Path]:
     """Write ``<out_stem>.onnx`` (the source's network, byte for byte) and ``<out_stem>.json``
     (the source's, with other deploy gains or excitation speed) for a policy whose
     checkpoints are gone.
@@ -256,9 +256,9 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     lifts (the JSON's ``shift_by_leg``; the other legs keep theirs); adapt: whether the lifted
     leg's tracking adapter runs (the JSON's ``lift_schedule.adapt``;
     :mod:`deploy.tracking_adapter`: the network never sees the lifted leg's motors, so any
-    policy may have it); stand_gain: the graph plays :mod:`policy_train.stand`'s ``home`` stand
-    with this gain while no leg is lifted, instead of the network's own four-leg stand (the
-    only change to the ONNX: nodes after the network; the JSON's ``stand``).
+    policy may have it); stand: the JSON's ``stand`` (:func:`policy_train.stand.stand_spec`,
+    ``home`` or ``hold``): what the graph plays while no leg is lifted, instead of the network's
+    own four-leg stand (the only change to the ONNX: nodes after the network).
     The JSON's ``derived_from`` names the source, its commit, the gains, t_r, shift (and
     ``shift_by_leg``), adapt and stand it had; its evaluation figures are dropped (they were
     measured with the source's settings).
@@ -284,13 +284,13 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                                else {}),
                             "adapt": sched.adapt,
                             "stand": meta.get("stand", {"mode": "network"})}
-    if stand_gain is not None:
-        from policy_train.stand import apply_stand
+    if stand is not None:
+        from policy_train.stand import apply_stand, stand_spec
 
         # a stand in the graph without one in the JSON is refused by apply_stand
         if meta.get("stand", {"mode": "network"}) != {"mode": "network"}:
             raise ValueError("the graph already has a stand; derive from its source instead")
-        meta["stand"] = {"mode": "home", "gain": float(stand_gain)}
+        meta["stand"] = stand_spec(stand.get("mode"), stand.get("gain"))
         data = apply_stand(data, meta)
     if gains is not None:
         kp, kd = (_per_joint(g, name) for g, name in zip(gains, ("kp", "kd"), strict=True))
@@ -330,7 +330,7 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     meta.pop("evaluation_nominal", None)
     onnx_path, json_path = out_stem.with_name(name + ".onnx"), out_stem.with_name(name + ".json")
     PolicyMeta.from_dict(meta, json_path)  # as deploy will read it: ValueError before writing
-    if stand_gain is not None:
+    if stand is not None:
         _check_stand(meta, data)
     onnx_path.parent.mkdir(parents=True, exist_ok=True)
     write_bytes_atomic(onnx_path, data)
@@ -342,7 +342,7 @@ def _check_stand(meta: dict, data: bytes) -> None:
     """ValueError unless the policy's stand settles (:func:`policy_train.stand.settle`)."""
     import tempfile
 
-    from policy_train.stand import MAX_SETTLE_TILT_DEG, MAX_SETTLED_ERROR, SETTLE_S, settle
+    from policy_train.stand import SETTLE_S, settle
 
     with tempfile.TemporaryDirectory() as d:
         json_path = Path(d) / (meta["name"] + ".json")
@@ -350,10 +350,9 @@ def _check_stand(meta: dict, data: bytes) -> None:
         json_path.write_text(json.dumps(meta))
         s = settle(json_path)
     if not s.settled:
-        raise ValueError(f"the stand does not settle at these gains: after {SETTLE_S:g} s the "
-                         f"joints are {s.error_rad:.3f} rad from the default pose (at most "
-                         f"{MAX_SETTLED_ERROR}) and the body tilted {s.tilt_deg:.1f} deg (at "
-                         f"most {MAX_SETTLE_TILT_DEG:g}); give damped --gains or a lower gain")
+        raise ValueError(f"the {s.mode} stand does not settle at these gains in {SETTLE_S:g} s on "
+                         f"the simulator: {s.why_not()}; give damped --gains"
+                         + (" or a lower gain" if s.mode == "home" else ""))
 
 
 def _per_joint(gain, name: str) -> np.ndarray:

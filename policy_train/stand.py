@@ -29,12 +29,15 @@ or a checker's, gets the same stand.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-STAND_MODES = ("network", "home")
-"""``network``: the graph as trained; ``home``: the integral stand at the default pose."""
+STAND_MODES = ("network", "home", "hold")
+"""``network``: the graph as trained; ``home``: the integral stand at the default pose;
+``hold``: zero actions, the joint targets held where they are."""
 
 _PREFIX = "stand_"  # names of what this module adds to a graph
 
@@ -56,27 +59,44 @@ def has_stand(model) -> bool:
     return any(n.name.startswith(_PREFIX) for n in model.graph.node)
 
 
-def add_home_stand(onnx_bytes: bytes, observation: dict, lift_none_value: float,
-                   default_pose, gain: float = 1.0) -> bytes:
-    """The graph ``onnx_bytes`` with the ``home`` stand (module docstring) where the newest
-    frame's ``lift_command`` is ``lift_none_value``. observation: the JSON's ``observation``
-    (terms, in frame order; the newest frame first); default_pose: the JSON's (12, rad), which
-    the ``joint_pos`` term must be measured from; gain: raw action per unit of
-    ``joint_pos`` error, in (0, 5). ValueError on a graph that already has a stand, on terms
-    without ``joint_pos`` / ``lift_command`` or measured from another pose."""
+def stand_spec(mode: str, gain: float | None = None) -> dict:
+    """The JSON's ``stand`` for ``mode`` (:data:`STAND_MODES`); ``home`` needs its gain (raw
+    action per unit of ``joint_pos`` error, in (0, 5)), the others take none. ValueError
+    otherwise."""
+    if mode not in STAND_MODES:
+        raise ValueError(f"unknown stand {mode!r}; known: {', '.join(STAND_MODES)}")
+    if mode != "home":
+        if gain is not None:
+            raise ValueError(f"the {mode} stand takes no gain")
+        return {"mode": mode}
+    if gain is None or not (np.isfinite(gain) and 0 < gain < 5):
+        raise ValueError(f"the home stand's gain must be in (0, 5), got {gain}")
+    return {"mode": "home", "gain": float(gain)}
+
+
+def add_stand(onnx_bytes: bytes, observation: dict, lift_none_value: float, default_pose,
+              stand: dict) -> bytes:
+    """The graph ``onnx_bytes`` playing ``stand`` (:func:`stand_spec`; module docstring) where
+    the newest frame's ``lift_command`` is ``lift_none_value``. observation: the JSON's
+    ``observation`` (terms, in frame order; the newest frame first); default_pose: the JSON's
+    (12, rad), which ``home`` needs the ``joint_pos`` term measured from. ValueError on a graph
+    that already has a stand, on terms without ``lift_command`` (or, for ``home``, without a
+    ``joint_pos`` measured from the default pose)."""
     import onnx
     from onnx import TensorProto, helper, numpy_helper
 
-    if not (np.isfinite(gain) and 0 < gain < 5):
-        raise ValueError(f"the stand's gain must be in (0, 5), got {gain}")
+    stand = stand_spec(stand.get("mode"), stand.get("gain"))
+    if stand["mode"] == "network":
+        return onnx_bytes
     terms = observation["terms"]
-    q_at, q_size, q_scale, q_offset = _term_columns(terms, "joint_pos")
     c_at, _, c_scale, _ = _term_columns(terms, "lift_command")
-    if q_size != 12:
-        raise ValueError(f"joint_pos has {q_size} values, expected 12")
-    if q_offset is None or not np.allclose(q_offset, default_pose, atol=1e-9):
-        raise ValueError("joint_pos is not measured from the default pose: the stand would "
-                         "hold another one")
+    if stand["mode"] == "home":
+        q_at, q_size, q_scale, q_offset = _term_columns(terms, "joint_pos")
+        if q_size != 12:
+            raise ValueError(f"joint_pos has {q_size} values, expected 12")
+        if q_offset is None or not np.allclose(q_offset, default_pose, atol=1e-9):
+            raise ValueError("joint_pos is not measured from the default pose: the stand would "
+                             "hold another one")
     model = onnx.load_from_string(onnx_bytes)
     if has_stand(model):
         raise ValueError("the graph already has a stand; derive from its source instead")
@@ -99,16 +119,19 @@ def add_home_stand(onnx_bytes: bytes, observation: dict, lift_none_value: float,
         return _PREFIX + name
 
     axis1 = const("axis1", [1], np.int64)
-    q = node("Slice", [obs, const("q_lo", [q_at], np.int64),
-                       const("q_hi", [q_at + 12], np.int64), axis1], "joint_pos")
-    home = node("Mul", [q, const("gain", -gain / q_scale)], "home_actions")
+    if stand["mode"] == "home":
+        q = node("Slice", [obs, const("q_lo", [q_at], np.int64),
+                           const("q_hi", [q_at + 12], np.int64), axis1], "joint_pos")
+        actions = node("Mul", [q, const("gain", -stand["gain"] / q_scale)], "home_actions")
+    else:  # hold: a constant, so a non-finite network output cannot leak into it
+        actions = const("hold_actions", np.zeros((1, 12)))
     c = node("Slice", [obs, const("c_lo", [c_at], np.int64),
                        const("c_hi", [c_at + 1], np.int64), axis1], "lift_command")
     # the command's values are c_scale apart: nearer than half of that is the value
     dist = node("Abs", [node("Sub", [c, const("none", lift_none_value * c_scale)], "c_minus")],
                 "c_dist")
     none = node("Less", [dist, const("half_step", 0.5 * abs(c_scale))], "no_lift")
-    g.node.append(helper.make_node("Where", [none, home, net_out], [out],
+    g.node.append(helper.make_node("Where", [none, actions, net_out], [out],
                                    name=_PREFIX + "select"))
     g.value_info.append(helper.make_tensor_value_info(net_out, TensorProto.FLOAT,
                                                       ["batch", 12]))
@@ -120,19 +143,17 @@ def apply_stand(onnx_bytes: bytes, meta: dict) -> bytes:
     """The graph with the stand the policy JSON ``meta`` names (its ``stand``; absent or
     ``network``: unchanged): for a graph rebuilt from a policy's network (``a2i-train refine``),
     so that its JSON's stand is the one it plays."""
-    stand = meta.get("stand") or {"mode": "network"}
-    if stand.get("mode") == "network":
-        return onnx_bytes
-    if stand.get("mode") != "home":
-        raise ValueError(f"unknown stand {stand.get('mode')!r}; known: {', '.join(STAND_MODES)}")
-    return add_home_stand(onnx_bytes, meta["observation"], meta["lift_command"]["none"],
-                          meta["default_pose"], float(stand["gain"]))
+    return add_stand(onnx_bytes, meta["observation"], meta["lift_command"]["none"],
+                     meta["default_pose"], meta.get("stand") or {"mode": "network"})
 
 
 SETTLE_S = 4.0
 """s of standing :func:`settle` plays."""
 MAX_SETTLED_ERROR = 0.02
-"""rad: the joints' largest distance from the default pose at the end of :func:`settle`."""
+"""rad: for ``home``, the joints' largest distance from the default pose at the end of
+:func:`settle` (``hold`` leaves them where the PD law sags to under the body's weight)."""
+MAX_SETTLED_DRIFT = 0.01
+"""rad: the joints' largest motion over the last second of :func:`settle` (at rest)."""
 MAX_SETTLE_TILT_DEG = 10.0
 """deg: the body's largest tilt during :func:`settle`."""
 
@@ -141,39 +162,67 @@ MAX_SETTLE_TILT_DEG = 10.0
 class Settle:
     """How a policy's stand (lift command none) stands the robot: after :data:`SETTLE_S` s
     from the default pose on the level floor of the URDF's model, nothing else perturbing it.
-    error_rad: the joints' largest distance from the default pose at the end; tilt_deg: the
-    body's largest tilt on the way."""
+    mode: the stand's (:data:`STAND_MODES`); error_rad: the joints' largest distance from the
+    default pose at the end; drift_rad: their largest motion over the last second; tilt_deg:
+    the body's largest tilt on the way."""
 
+    mode: str
     error_rad: float
+    drift_rad: float
     tilt_deg: float
 
     @property
     def settled(self) -> bool:
-        return self.error_rad <= MAX_SETTLED_ERROR and self.tilt_deg <= MAX_SETTLE_TILT_DEG
+        return (self.tilt_deg <= MAX_SETTLE_TILT_DEG and self.drift_rad <= MAX_SETTLED_DRIFT
+                and (self.mode != "home" or self.error_rad <= MAX_SETTLED_ERROR))
+
+    def why_not(self) -> str:
+        """One line on what :attr:`settled` found wrong ('' when settled)."""
+        bad = []
+        if self.mode == "home" and self.error_rad > MAX_SETTLED_ERROR:
+            bad.append(f"the joints end {self.error_rad:.3f} rad from the default pose (at most "
+                       f"{MAX_SETTLED_ERROR})")
+        if self.drift_rad > MAX_SETTLED_DRIFT:
+            bad.append(f"they still moved {self.drift_rad:.3f} rad in the last second (at most "
+                       f"{MAX_SETTLED_DRIFT})")
+        if self.tilt_deg > MAX_SETTLE_TILT_DEG:
+            bad.append(f"the body tilted {self.tilt_deg:.1f} deg (at most "
+                       f"{MAX_SETTLE_TILT_DEG:g})")
+        return "; ".join(bad)
 
 
 def settle(json_path, seconds: float = SETTLE_S) -> Settle:
     """Play the policy at ``json_path`` (its ONNX beside it) with no lift command, as on board
-    (50 Hz, the JSON's gains, 1 kHz physics), from the default pose."""
+    (50 Hz, the JSON's gains, 1 kHz physics), from the default pose; seconds: at least 1."""
     from calib.joints import model_to_sdk, sdk_to_model
     from deploy.observation import build_observation
     from deploy.policy import PolicyMeta, PolicyRunner
     from policy_train.policy_motion import policy_signals
     from sim.free_base_run import free_base_sim
 
+    if not seconds >= 1.0:
+        raise ValueError(f"settle needs at least 1 s, got {seconds}")
     pm = PolicyMeta.load(json_path)
+    mode = (json.loads(Path(json_path).read_text()).get("stand") or {}).get("mode", "network")
     runner = PolicyRunner(pm)
     dt = 0.001
     n_ctrl = round(pm.control_dt / dt)
+    n = round(seconds / dt)
     sim = free_base_sim(dt, sdk_to_model(pm.default_pose))
     runner.reset(model_to_sdk(sim.q))
     kp, kd = sdk_to_model(pm.kp), sdk_to_model(pm.kd)
     tilt = 0.0
-    for k in range(round(seconds / dt)):
+    lo = hi = None  # the joints' range over the last second (SDK order)
+    for k in range(n):
         if k % n_ctrl == 0:
             signals = policy_signals(sim, runner, pm.lift_value(None))
             runner.step(runner.act(build_observation(pm.observation, signals)))
             sim.set_command(sdk_to_model(runner.target), np.zeros(12), kp, kd, 0.0)
         sim.step()
         tilt = max(tilt, sim.base_tilt)
-    return Settle(float(np.abs(sim.q_sdk - pm.default_pose).max()), float(np.degrees(tilt)))
+        if k >= n - round(1.0 / dt):
+            q = sim.q_sdk
+            lo = q if lo is None else np.minimum(lo, q)
+            hi = q if hi is None else np.maximum(hi, q)
+    return Settle(mode, float(np.abs(sim.q_sdk - pm.default_pose).max()),
+                  float((hi - lo).max()), float(np.degrees(tilt)))

@@ -536,7 +536,8 @@ def test_derive_turns_the_tracking_adapter_on_and_off(exported, tmp_path):
     (["--gains", "nan,1"], "--gains"), (["--gains", "29,0.7/23,0.5"], "--gains"),
     (["--gains", "29,0.7/29,0.7/0,0.5"], "--gains"), (["--lift-gains", "0,2"], "--lift-gains"),
     (["--t-r", "0"], "--t-r"), (["--t-r", "x"], "--t-r"), (["--stand", "0"], "--stand"),
-    (["--stand", "5"], "--stand"), (["--stand", "x"], "--stand")])
+    (["--stand", "5"], "--stand"), (["--stand", "x"], "--stand"),
+    (["--stand", "Hold"], "--stand")])
 def test_bad_derive_exits_with_one_line(extra, hint, exported, tmp_path, capsys):
     from policy_train.cli import main
 
@@ -900,19 +901,22 @@ def test_derive_stand_holds_the_default_pose_while_no_leg_is_lifted(exported, tm
     stand of ``policy_train.stand`` (actions -GAIN/s x the joint_pos term), any other command
     the network, whose weights stay the source's; with damped gains the stand brings the joints
     to the default pose on the free-base simulator, the PD sag taken out; at the training's
-    soft gains it tips the robot and derive refuses it; a second stand is refused."""
+    soft gains it tips the robot and derive refuses it; a second stand is refused.
+    `derive --stand hold` plays zero actions there: the targets held, the joints sagged but
+    at rest, and refused where the soft gains leave the body rocking."""
     from policy_train.cli import main
-    from policy_train.stand import settle
+    from policy_train.stand import MAX_SETTLED_ERROR, settle
 
-    def refused(source, out, why):
+    def refused(source, out, why, stand="0.2"):
         capsys.readouterr()
-        assert main(["derive", str(source), "--out", str(out), "--stand", "0.2"]) == 2
+        assert main(["derive", str(source), "--out", str(out), "--stand", stand]) == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and why in err[0]
+        assert len(err) == 1 and why in err[0], err
         assert not out.with_suffix(".json").exists()
 
     d, _ = exported
     refused(d / "pol.onnx", tmp_path / "soft", "does not settle")
+    refused(d / "pol.onnx", tmp_path / "soft", "still moved", "hold")
 
     damped = ["--gains", "29,8/29,8/26,1.2"]
     assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "s"), *damped,
@@ -942,7 +946,20 @@ def test_derive_stand_holds_the_default_pose_while_no_leg_is_lifted(exported, tm
     assert all(np.array_equal(w, new_w[k]) for k, w in src_w.items())
     # the same gains without the stand: the network's own (here barely trained) stand
     assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "n"), *damped]) == 0
-    assert not settle(tmp_path / "n.json").settled
+    assert settle(tmp_path / "n.json").error_rad > MAX_SETTLED_ERROR
     s = settle(tmp_path / "s.json")
     assert s.settled and s.error_rad < 0.01
     refused(tmp_path / "s.onnx", tmp_path / "t", "already has a stand")
+
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "h"), *damped,
+                 "--stand", "hold"]) == 0
+    meta = json.loads((tmp_path / "h.json").read_text())
+    assert meta["stand"] == {"mode": "hold"}
+    assert _derived(meta).endswith("the joint targets held (`policy_train.stand`'s hold) "
+                                   "instead of the network's stand")
+    y = ort.InferenceSession(str(tmp_path / "h.onnx"), providers=["CPUExecutionProvider"]).run(
+        ["actions"], {"obs": x})[0]
+    assert np.all(y[none] == 0) and np.array_equal(y[~none], y_src[~none])
+    h = settle(tmp_path / "h.json")  # sagged under the PD law, at rest
+    assert h.settled and h.error_rad > MAX_SETTLED_ERROR and h.drift_rad < 0.005
+    refused(tmp_path / "h.onnx", tmp_path / "t", "already has a stand", "hold")
