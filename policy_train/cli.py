@@ -723,7 +723,8 @@ def main(argv: list[str] | None = None) -> int:
                    "playing the network's own stand. GAIN (in [0.01, 5)): at the default pose, "
                    "each tick moving every joint's target by the action scale x GAIN of its "
                    "error, so the PD sag is taken out; hold: zero actions, the targets held "
-                   "(the joints sag under the PD law). Refused unless it settles on the "
+                   "(the joints sag under the PD law) until the first lift, the network's own "
+                   "stand after it. Refused unless it settles on the "
                    "simulator (damped gains)")
     r = sub.add_parser("refine", help="add a linear residual on the body's rate and tilt to an "
                        "exported policy's lifts of one leg, tuned by evolution strategies")

@@ -336,7 +336,7 @@ def _derived(meta: dict) -> str:
                            f"`policy_train.stand` (gain {stand['gain']:g}) instead of the "
                            "network's")
         elif stand.get("mode") == "hold":
-            changed.append("with no leg lifted, the joint targets held (`policy_train.stand`'s "
+            changed.append("with no leg lifted yet, the joint targets held (`policy_train.stand`'s "
                            "hold) instead of the network's stand")
     # no "then": a refined policy keeps the derive record of the policy it was refined from
     return (f"; its deploy settings from `a2i-train derive` on `{d.get('policy')}`: "

@@ -17,10 +17,21 @@ lifts to falls after the leg was set down, and at 0.2 still some: v27 is a candi
 stand is then left-right symmetric and the start every lift was evaluated from. Any other
 command plays the network as before.
 
+``hold`` plays zero actions instead, from the reset until the network first acts (a lift):
+the joint targets stay at the pose the robot stood up to, and the joints sag under the PD law
+as far as the body's weight bends them (v26's gains: 0.23-0.25 rad at the calves, the base
+32 mm lower on Menagerie's model). It is as symmetric as ``home``. The graph is stateless, so
+the latch is its own output fed back: ``previous_actions`` is exactly zero after a reset and
+while the hold plays, and not once the network has played a lift, so after the lowering the
+network's own stand plays again, from wherever the feet were set down. Without the latch the
+hold (like v27's ``home``) stood the robot on after the lowering on targets the lift left
+behind, and lost rear lifts there in the evaluation (``docs/policy-training.md``, "Stop 49").
+
 The integral needs damped joints: at the training's gains (kp 20, kd 0.5 on every joint) the
 body rocks on its legs and tips over within 2-4 s at stand gains 0.1-0.5, where deploy's gains
 since v20 (kd 8 on hips and thighs) settle it. So :func:`settle` plays the stand on the free-base
-simulator and ``a2i-train derive --stand`` refuses a policy whose stand does not settle.
+simulator and ``a2i-train derive --stand`` refuses a policy whose stand does not settle (the
+hold's too: at the training's gains it leaves the body rocking).
 
 The edit is made on the ONNX graph itself (nodes appended after the network's output), so the
 network's weights stay byte for byte the source's and every script that runs the graph, deploy
@@ -37,9 +48,14 @@ import numpy as np
 
 STAND_MODES = ("network", "home", "hold")
 """``network``: the graph as trained; ``home``: the integral stand at the default pose;
-``hold``: zero actions, the joint targets held where they are."""
+``hold``: zero actions, the joint targets held, until the network first acts."""
 
 _PREFIX = "stand_"  # names of what this module adds to a graph
+
+HOLD_LATCH = 1e-6
+"""Raw action units: ``hold`` plays while the newest frame's ``previous_actions`` sum below
+this in absolute value (exactly zero after a reset and while the hold plays; a network's
+twelve outputs are never all that small)."""
 
 
 def _term_columns(obs_terms, name: str) -> tuple[int, int, float, np.ndarray | None]:
@@ -130,8 +146,19 @@ def add_stand(onnx_bytes: bytes, observation: dict, lift_none_value: float, defa
     # the command's values are c_scale apart: nearer than half of that is the value
     dist = node("Abs", [node("Sub", [c, const("none", lift_none_value * c_scale)], "c_minus")],
                 "c_dist")
-    none = node("Less", [dist, const("half_step", 0.5 * abs(c_scale))], "no_lift")
-    g.node.append(helper.make_node("Where", [none, actions, net_out], [out],
+    play = none = node("Less", [dist, const("half_step", 0.5 * abs(c_scale))], "no_lift")
+    if stand["mode"] == "hold":
+        # the latch: the graph's own last output comes back as previous_actions, all zero from
+        # the reset for as long as the hold plays; once the network has acted (a lift) it is
+        # not, and the network's stand plays on. A sum by MatMul needs no opset-specific Reduce.
+        p_at, _, p_scale, _ = _term_columns(terms, "previous_actions")
+        prev = node("Abs", [node("Slice", [obs, const("p_lo", [p_at], np.int64),
+                                           const("p_hi", [p_at + 12], np.int64), axis1],
+                                 "previous_actions")], "previous_abs")
+        moved = node("MatMul", [prev, const("ones", np.ones((12, 1)))], "previous_sum")
+        fresh = node("Less", [moved, const("at_rest", HOLD_LATCH * abs(p_scale))], "not_acted")
+        play = node("And", [none, fresh], "hold_plays")
+    g.node.append(helper.make_node("Where", [play, actions, net_out], [out],
                                    name=_PREFIX + "select"))
     g.value_info.append(helper.make_tensor_value_info(net_out, TensorProto.FLOAT,
                                                       ["batch", 12]))

@@ -902,8 +902,9 @@ def test_derive_stand_holds_the_default_pose_while_no_leg_is_lifted(exported, tm
     the network, whose weights stay the source's; with damped gains the stand brings the joints
     to the default pose on the free-base simulator, the PD sag taken out; at the training's
     soft gains it tips the robot and derive refuses it; a second stand is refused.
-    `derive --stand hold` plays zero actions there: the targets held, the joints sagged but
-    at rest, and refused where the soft gains leave the body rocking."""
+    `derive --stand hold` plays zero actions there until the network first acts: the targets
+    held, the joints sagged but at rest, and refused where the soft gains leave the body
+    rocking."""
     from policy_train.cli import main
     from policy_train.stand import MAX_SETTLED_ERROR, settle
 
@@ -955,11 +956,15 @@ def test_derive_stand_holds_the_default_pose_while_no_leg_is_lifted(exported, tm
                  "--stand", "hold"]) == 0
     meta = json.loads((tmp_path / "h.json").read_text())
     assert meta["stand"] == {"mode": "hold"}
-    assert _derived(meta).endswith("the joint targets held (`policy_train.stand`'s hold) "
+    assert _derived(meta).endswith("with no leg lifted yet, the joint targets held "
+                                   "(`policy_train.stand`'s hold) "
                                    "instead of the network's stand")
-    y = ort.InferenceSession(str(tmp_path / "h.onnx"), providers=["CPUExecutionProvider"]).run(
-        ["actions"], {"obs": x})[0]
-    assert np.all(y[none] == 0) and np.array_equal(y[~none], y_src[~none])
+    # it holds while no leg is lifted and the network has not acted since the reset (the
+    # previous actions all zero: rows 0 to 2), then the network plays, its stand too (row 5)
+    x[:3, at["previous_actions"]:at["previous_actions"] + 12] = 0
+    y_src, y = (ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(
+        ["actions"], {"obs": x})[0] for p in (d / "pol.onnx", tmp_path / "h.onnx"))
+    assert np.all(y[0] == 0) and np.array_equal(y[1:], y_src[1:]) and np.any(y_src[5] != 0)
     h = settle(tmp_path / "h.json")  # sagged under the PD law, at rest
     assert h.settled and h.error_rad > MAX_SETTLED_ERROR and h.drift_rad < 0.005
     refused(tmp_path / "h.onnx", tmp_path / "t", "already has a stand", "hold")
