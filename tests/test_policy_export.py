@@ -965,6 +965,25 @@ def test_derive_stand_holds_the_default_pose_while_no_leg_is_lifted(exported, tm
     y_src, y = (ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(
         ["actions"], {"obs": x})[0] for p in (d / "pol.onnx", tmp_path / "h.onnx"))
     assert np.all(y[0] == 0) and np.array_equal(y[1:], y_src[1:]) and np.any(y_src[5] != 0)
+    # fed back as deploy's runner feeds it: held from the reset, the network after a lift
+    from calib.joints import sdk_to_model
+    from deploy.policy import PolicyMeta, PolicyRunner
+    from policy_train.policy_motion import policy_signals
+    from sim.free_base_run import free_base_sim
+
+    pm = PolicyMeta.load(tmp_path / "h.json")
+    runner = PolicyRunner(pm)
+    sim = free_base_sim(0.001, sdk_to_model(pm.default_pose))
+    outputs = []
+    for leg in [None] * 3 + ["FR"] + [None] * 3 + ["reset", None]:
+        if leg == "reset":
+            runner.reset(pm.default_pose)
+            continue
+        a = runner.act(build_observation(pm.observation,
+                                         policy_signals(sim, runner, pm.lift_value(leg))))
+        runner.step(a)
+        outputs.append(np.abs(a).sum())
+    assert outputs[:3] == [0, 0, 0] and min(outputs[3:7]) > 0 and outputs[7] == 0
     h = settle(tmp_path / "h.json")  # sagged under the PD law, at rest
     assert h.settled and h.error_rad > MAX_SETTLED_ERROR and h.drift_rad < 0.005
     refused(tmp_path / "h.onnx", tmp_path / "t", "already has a stand", "hold")
