@@ -769,7 +769,9 @@ def main(argv: list[str] | None = None) -> int:
     v.add_argument("--randomisation", choices=RANDOMISATIONS, default="standard",
                    help="standard: DRConfig's defaults, the same for every policy (written); "
                         "training: the policy's own training ranges (writes nothing)")
-    v.add_argument("--results", default="docs/results/policy.md")
+    v.add_argument("--results", default=None, metavar="MD",
+                   help="the page to write (default: docs/results/policy.md for the policy "
+                   "deploy picks, else docs/results/policy_<name>.md, e.g. policy_v28.md)")
     x = sub.add_parser("transfer", help="re-run the policy's calibrations on sim.go2 under "
                                         "perturbations it was not trained for (needs no torch)")
     x.add_argument("onnx", nargs="?", help="the policy (its .json beside it)")

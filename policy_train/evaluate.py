@@ -95,8 +95,24 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
     return env, leg_of
 
 
+def results_page(onnx_path, results_dir="docs/results") -> Path:
+    """Where ``a2i-train eval`` writes a policy's page by default: ``policy.md`` for the policy
+    deploy picks (:func:`deploy.policy.default_policy_path` from the working directory), else
+    ``policy_<name>.md`` (``tripod_go2_v28`` -> ``policy_v28.md``), so that evaluating a
+    candidate leaves the deploy policy's page alone."""
+    from deploy.policy import default_policy_path
+
+    json_path = Path(onnx_path).with_suffix(".json").resolve()
+    try:
+        deployed = default_policy_path().resolve() == json_path
+    except ValueError:  # no policies/ here
+        deployed = False
+    name = "" if deployed else "_" + json_path.stem.removeprefix("tripod_go2_")
+    return Path(results_dir) / f"policy{name}.md"
+
+
 def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, write: bool = True,
-                    results_path="docs/results/policy.md", log=print, nominal: bool = False,
+                    results_path=None, log=print, nominal: bool = False,
                     dr_off: tuple[str, ...] = (), randomisation: str = "standard",
                     dr_set: dict | None = None) -> dict:
     """Per-leg figures of the policy over ``episodes`` calibration motions per leg, under the
@@ -108,7 +124,8 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
     after it) shows them in a second table. ``dr_off``: groups of ``config.DR_GROUPS`` held
     nominal (a diagnosis of what each costs); ``dr_set``: ``DRConfig`` fields set over the
     randomisation (``{"motor_strength": (0.7, 0.8)}``: how it does with weak motors). Either
-    is a diagnosis, never written.
+    is a diagnosis, never written. ``write`` writes the page to ``results_path`` (None:
+    :func:`results_page`) and the figures into the policy's JSON.
     """
     import onnxruntime as ort
 
@@ -240,7 +257,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
         meta["evaluation_nominal"] = result
         write_text_atomic(onnx_path.with_suffix(".json"), json.dumps(meta, indent=1) + "\n")
     elif write:
-        write_text_atomic(results_path, _report(result, meta, table))
+        write_text_atomic(results_path or results_page(onnx_path), _report(result, meta, table))
         meta["evaluation"] = result
         write_text_atomic(onnx_path.with_suffix(".json"), json.dumps(meta, indent=1) + "\n")
     return result

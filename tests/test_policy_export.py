@@ -132,6 +132,29 @@ def test_eval_runs_on_export(exported, tmp_path):
     assert json.loads((d / "pol.json").read_text())["evaluation"]["legs"]["FL"]["episodes"] == 1
 
 
+def test_eval_page_of_a_candidate_leaves_the_deploy_policys_page_alone(exported, tmp_path,
+                                                                      monkeypatch):
+    """policy.md is the page of the policy deploy picks (the newest in policies/); any other
+    policy's page is policy_<name>.md."""
+    from policy_train.evaluate import results_page
+
+    d, _ = exported
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "policies" / "candidates").mkdir(parents=True)
+    meta = json.loads((d / "pol.json").read_text())
+    for where, name, created in [("policies", "tripod_go2_v2", "2026-01-02T00:00:00Z"),
+                                 ("policies", "tripod_go2_v1", "2026-01-01T00:00:00Z"),
+                                 ("policies/candidates", "tripod_go2_v3", "2026-01-03T00:00:00Z")]:
+        (tmp_path / where / f"{name}.json").write_text(json.dumps(
+            {**meta, "name": name, "onnx": f"{name}.onnx", "created_utc": created}))
+    assert results_page("policies/tripod_go2_v2.onnx") == Path("docs/results/policy.md")
+    assert results_page(tmp_path / "policies/tripod_go2_v1.onnx") == Path(
+        "docs/results/policy_v1.md")
+    assert results_page("policies/candidates/tripod_go2_v3.onnx") == Path(
+        "docs/results/policy_v3.md")
+    assert results_page(d / "pol.onnx") == Path("docs/results/policy_pol.md")
+
+
 def test_nominal_eval_goes_to_the_json_then_the_report(exported, tmp_path):
     d, _ = exported
     from policy_train.evaluate import evaluate_policy
