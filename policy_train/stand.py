@@ -54,8 +54,8 @@ _PREFIX = "stand_"  # names of what this module adds to a graph
 
 HOLD_LATCH = 1e-6
 """Raw action units: ``hold`` plays while the newest frame's ``previous_actions`` sum below
-this in absolute value (exactly zero after a reset and while the hold plays; a network's
-twelve outputs are never all that small)."""
+this in absolute value: exactly zero after a reset and while the hold plays; below it, all
+twelve of a network's outputs would have to vanish at once."""
 
 
 def _term_columns(obs_terms, name: str) -> tuple[int, int, float, np.ndarray | None]:
