@@ -1,16 +1,36 @@
 """Tripod environment throughput: env steps/s (one step = 4 physics steps of every env) with
-the MuJoCo batch on each thread count asked for, and the ratio to one thread. Random actions on
-a standing robot. On a machine without the URDF and pinocchio, give the files of
+the MuJoCo batch on each thread count asked for, and the ratio to the first count. Random
+actions on a standing robot. On a machine without the URDF and pinocchio, give the files of
 ``a2i-train pack`` (``--pack DIR``).
 
-  .venv/bin/python bench/bench_policy_env.py [--envs 256] [--steps 40] [--threads 1,2] [--pack DIR]
+Where the scaling goes (docs/policy-training.md, "Stop 50"):
+
+* ``--batch``: the MuJoCo batch's calls inside the env steps (ms a step) and the rest of the
+  step (numpy on the calling thread, ms), and the batch alone, ``decimation`` calls of
+  ``Batch.step`` from the state the environment left, on the same thread counts;
+* ``--processes K1,K2``: K processes at once, each with its own environment of envs / K and
+  its batch on T / K threads (T the largest of ``--threads``), which share nothing, so their
+  numpy runs in parallel;
+* ``--groups K1,K2``: K environments of envs / K in this process, each with its batch on T / K
+  threads (``--group-threads N``: N each), stepped at once from K Python threads, so that one
+  group's numpy may run while another's batch steps (MuJoCo's calls and numpy's array loops
+  release the GIL); ``--switch-interval S`` sets how long a thread may hold the GIL while
+  another waits (``sys.setswitchinterval``, Python's default 0.005 s).
+
+  .venv/bin/python bench/bench_policy_env.py [--envs 256] [--steps 40] [--threads 1,2]
+      [--batch] [--processes 1,2] [--groups 1,2] [--group-threads N]
+      [--switch-interval S] [--pack DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import multiprocessing as mp
 import os
+import queue
+import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -20,44 +40,194 @@ from policy_train.env import TripodEnv
 
 PACK_FILES = {"model_file": "go2_train.mjb", "plan_pool_file": "pool.npz",
               "leg_dynamics_file": "leg_dynamics.npz"}  # what a2i-train pack writes
+WARMUP = 5
 
 
-def measure(n_envs: int, threads: int, steps: int, pack: Path | None = None) -> float:
+def _env(n_envs: int, threads: int, pack: Path | None) -> TripodEnv:
     files = {} if pack is None else {k: str(pack / f) for k, f in PACK_FILES.items()}
-    env = TripodEnv(EnvConfig(num_envs=n_envs, plans_per_leg=1, seed=0, threads=threads, **files))
-    rng = np.random.default_rng(0)
-    for _ in range(5):
-        env.step(rng.normal(0, 0.1, (n_envs, 12)))
+    return TripodEnv(EnvConfig(num_envs=n_envs, plans_per_leg=1, seed=0, threads=threads,
+                               **files))
+
+
+def _run(env: TripodEnv, steps: int, rng: np.random.Generator) -> float:
+    """Seconds for ``steps`` env steps of random actions."""
     t0 = time.perf_counter()
     for _ in range(steps):
-        env.step(rng.normal(0, 0.1, (n_envs, 12)))
-    return steps * n_envs / (time.perf_counter() - t0)
+        env.step(rng.normal(0, 0.1, (env.N, 12)))
+    return time.perf_counter() - t0
+
+
+class _TimedBatch:
+    """The environment's batch, with the seconds spent in its ``step`` calls summed."""
+
+    def __init__(self, batch):
+        self._batch, self.seconds = batch, 0.0
+
+    def step(self, *args, **kwargs):
+        t0 = time.perf_counter()
+        self._batch.step(*args, **kwargs)
+        self.seconds += time.perf_counter() - t0
+
+    def __getattr__(self, name):
+        return getattr(self._batch, name)
+
+
+def measure(n_envs: int, threads: int, steps: int, pack: Path | None = None,
+            batch: bool = False) -> tuple[float, tuple[float, float, float] | None]:
+    """Env steps/s of the environment; with ``batch`` also (ms a step in the batch's calls,
+    ms in the rest of the step, env steps/s of the batch alone), else None."""
+    env = _env(n_envs, threads, pack)
+    rng = np.random.default_rng(0)
+    _run(env, WARMUP, rng)
+    timed = env.batch = _TimedBatch(env.batch) if batch else env.batch
+    seconds = _run(env, steps, rng)
+    rate = steps * n_envs / seconds
+    if not batch:
+        return rate, None
+    env.batch = timed._batch
+    in_step = 1e3 * timed.seconds / steps
+    dec = env.cfg.decimation
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        for _ in range(dec):
+            env.batch.step(nstep=1)
+    alone = steps * n_envs / (time.perf_counter() - t0)
+    return rate, (in_step, 1e3 * seconds / steps - in_step, alone)
+
+
+def _worker(n_envs: int, threads: int, steps: int, pack: Path | None, seed: int, barrier,
+            out) -> None:
+    env = _env(n_envs, threads, pack)
+    rng = np.random.default_rng(seed)
+    _run(env, WARMUP, rng)
+    barrier.wait()
+    t0 = time.perf_counter()
+    _run(env, steps, rng)
+    out.put((t0, time.perf_counter()))
+
+
+def measure_processes(n_envs: int, k: int, threads: int, steps: int,
+                      pack: Path | None = None) -> float:
+    """Env steps/s of ``k`` processes with ``n_envs // k`` envs each (batch threads
+    ``threads // k``), stepping at once: all envs' steps over the span from the first start
+    to the last finish."""
+    ctx = mp.get_context("spawn")  # a forked MuJoCo thread pool is not safe
+    barrier, out = ctx.Barrier(k), ctx.Queue()
+    per = n_envs // k
+    procs = [ctx.Process(target=_worker, args=(per, max(1, threads // k), steps, pack, i, barrier,
+                                                    out))
+             for i in range(k)]
+    for p in procs:
+        p.start()
+    spans = []
+    while len(spans) < k:
+        try:
+            spans.append(out.get(timeout=1.0))
+        except queue.Empty:
+            failed = [p.exitcode for p in procs if p.exitcode]
+            if failed:  # the others wait at the barrier for it
+                for p in procs:
+                    p.terminate()
+                raise SystemExit(f"bench_policy_env: a worker exited with {failed[0]}")
+    for p in procs:
+        p.join()
+    return k * per * steps / (max(e for _, e in spans) - min(s for s, _ in spans))
+
+
+def measure_groups(n_envs: int, k: int, threads: int, steps: int,
+                   pack: Path | None = None) -> float:
+    """Env steps/s of ``k`` environments of ``n_envs // k``, each with its batch on
+    ``threads`` threads, stepped at once from ``k`` Python threads."""
+    envs = [_env(n_envs // k, threads, pack) for _ in range(k)]
+    rngs = [np.random.default_rng(i) for i in range(k)]
+    with ThreadPoolExecutor(k) as pool:
+        list(pool.map(lambda i: _run(envs[i], WARMUP, rngs[i]), range(k)))
+        t0 = time.perf_counter()
+        list(pool.map(lambda i: _run(envs[i], steps, rngs[i]), range(k)))
+        return k * (n_envs // k) * steps / (time.perf_counter() - t0)
+
+
+def _counts(text: str, flag: str) -> list[int]:
+    try:
+        counts = [int(t) for t in text.split(",")]
+    except ValueError:
+        raise SystemExit(f"bench_policy_env: {flag} {text!r}: comma-separated integers")
+    if not counts or min(counts) < 1:
+        raise SystemExit(f"bench_policy_env: {flag} counts must be >= 1")
+    return counts
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     p.add_argument("--envs", type=int, default=256)
     p.add_argument("--steps", type=int, default=40)
     p.add_argument("--threads", default="1,2", help="thread counts, e.g. 1,2,4,8,16")
+    p.add_argument("--batch", action="store_true",
+                   help="also time the MuJoCo batch in the steps and alone")
+    p.add_argument("--processes", help="process counts, e.g. 1,2,4: the largest thread count split among them")
+    p.add_argument("--groups", help="group counts, e.g. 1,2,4: the largest thread count split "
+                   "among them")
+    p.add_argument("--group-threads", type=int, help="batch threads of each group")
+    p.add_argument("--switch-interval", type=float,
+                   help="seconds a thread may hold the GIL while another waits")
     p.add_argument("--pack", type=Path, help="a2i-train pack's folder instead of the URDF")
     a = p.parse_args()
-    try:
-        counts = [int(t) for t in a.threads.split(",")]
-    except ValueError:
-        raise SystemExit(f"bench_policy_env: --threads {a.threads!r}: comma-separated integers")
-    if not counts or min(counts) < 1 or a.envs < 1 or a.steps < 1:
-        raise SystemExit("bench_policy_env: --threads, --envs and --steps must be >= 1")
+    counts = _counts(a.threads, "--threads")
+    procs = _counts(a.processes, "--processes") if a.processes else []
+    groups = _counts(a.groups, "--groups") if a.groups else []
+    if a.envs < 1 or a.steps < 1:
+        raise SystemExit("bench_policy_env: --envs and --steps must be >= 1")
+    if a.envs < max(procs + groups + [1]):
+        raise SystemExit(f"bench_policy_env: --envs {a.envs} is fewer than "
+                         f"{max(procs + groups)} processes or groups")
+    if a.group_threads is not None and a.group_threads < 1:
+        raise SystemExit("bench_policy_env: --group-threads must be >= 1")
+    if a.switch_interval is not None:
+        if not a.switch_interval > 0:
+            raise SystemExit("bench_policy_env: --switch-interval must be > 0")
+        sys.setswitchinterval(a.switch_interval)
     missing = [f for f in PACK_FILES.values() if a.pack and not (a.pack / f).is_file()]
     if missing:
         raise SystemExit(f"bench_policy_env: {a.pack} lacks {', '.join(missing)} "
                          "(write it with a2i-train pack)")
-    res = {th: measure(a.envs, th, a.steps, a.pack) for th in counts}
-    base = res[counts[0]]
-    print(f"{os.cpu_count()} CPUs; {a.envs} envs, {a.steps} steps per thread count")
-    print(f"| threads | env steps/s | physics steps/s | ratio to {counts[0]} thread(s) |")
-    print("| --- | --- | --- | --- |")
-    for th, r in res.items():
-        print(f"| {th} | {r:,.0f} | {4 * r:,.0f} | {r / base:.2f} |")
+    print(f"{os.cpu_count()} CPUs; {a.envs} envs, {a.steps} steps per count; GIL switch "
+          f"interval {sys.getswitchinterval() * 1e3:g} ms", flush=True)
+    res = {}
+    for th in counts:
+        res[th] = measure(a.envs, th, a.steps, a.pack, a.batch)
+        print(f"  {th} thread(s) done", flush=True)
+    base, bbase = res[counts[0]]
+    print(f"| threads | env steps/s | physics steps/s | ratio to {counts[0]} thread(s) |"
+          + (" batch in the step, ms | rest of the step, ms | batch alone, env steps/s | "
+             "batch-alone ratio |" if a.batch else ""))
+    print("| --- | --- | --- | --- |" + (" --- | --- | --- | --- |" if a.batch else ""))
+    for th, (r, b) in res.items():
+        extra = (f" {b[0]:.1f} | {b[1]:.1f} | {b[2]:,.0f} | {b[2] / bbase[2]:.2f} |"
+                 if b is not None else "")
+        print(f"| {th} | {r:,.0f} | {4 * r:,.0f} | {r / base:.2f} |" + extra)
+    if procs:
+        th = max(counts)
+        rp = {}
+        for k in procs:
+            rp[k] = measure_processes(a.envs, k, th, a.steps, a.pack)
+            print(f"  {k} process(es) done", flush=True)
+        print(f"\n| processes ({th} threads in all) | env steps/s | ratio to {procs[0]} |")
+        print("| --- | --- | --- |")
+        for k, r in rp.items():
+            print(f"| {k} | {r:,.0f} | {r / rp[procs[0]]:.2f} |")
+
+    if groups:
+        th = max(counts)
+        rg = {}
+        for k in groups:
+            gt = a.group_threads or max(1, th // k)
+            rg[k] = measure_groups(a.envs, k, gt, a.steps, a.pack)
+            print(f"  {k} group(s) done", flush=True)
+        each = f"{a.group_threads} threads each" if a.group_threads else f"{th} threads in all"
+        print(f"\n| groups ({each}) | env steps/s | ratio to {groups[0]} |")
+        print("| --- | --- | --- |")
+        for k, r in rg.items():
+            print(f"| {k} | {r:,.0f} | {r / rg[groups[0]]:.2f} |")
 
 
 if __name__ == "__main__":
