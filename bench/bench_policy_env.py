@@ -6,8 +6,12 @@ actions on a standing robot. On a machine without the URDF and pinocchio, give t
 Where the scaling goes (docs/policy-training.md, "Stop 50"):
 
 * ``--batch``: the MuJoCo batch's calls inside the env steps (ms a step) and the rest of the
-  step (numpy on the calling thread, ms), and the batch alone, ``decimation`` calls of
-  ``Batch.step`` from the state the environment left, on the same thread counts;
+  step (the time the batch is not stepping: with one block, the numpy on the calling thread,
+  ms), and the batch alone, ``decimation`` calls of ``Batch.step`` from the state the
+  environment left, on the same thread counts;
+* ``--blocks K1,K2``: the environment's envs in K blocks (``EnvConfig.blocks``), whose
+  commands are computed while another block's physics steps ("Stop 51"), at each thread
+  count;
 * ``--processes K1,K2``: K processes at once, each with its own environment of envs / K and
   its batch on T / K threads (T the largest of ``--threads``), which share nothing, so their
   numpy runs in parallel;
@@ -18,7 +22,7 @@ Where the scaling goes (docs/policy-training.md, "Stop 50"):
   another waits (``sys.setswitchinterval``, Python's default 0.005 s).
 
   .venv/bin/python bench/bench_policy_env.py [--envs 256] [--steps 40] [--threads 1,2]
-      [--batch] [--processes 1,2] [--groups 1,2] [--group-threads N]
+      [--batch] [--blocks 1,2] [--processes 1,2] [--groups 1,2] [--group-threads N]
       [--switch-interval S] [--pack DIR]
 """
 
@@ -43,10 +47,10 @@ PACK_FILES = {"model_file": "go2_train.mjb", "plan_pool_file": "pool.npz",
 WARMUP = 5
 
 
-def _env(n_envs: int, threads: int, pack: Path | None) -> TripodEnv:
+def _env(n_envs: int, threads: int, pack: Path | None, blocks: int = 1) -> TripodEnv:
     files = {} if pack is None else {k: str(pack / f) for k, f in PACK_FILES.items()}
     return TripodEnv(EnvConfig(num_envs=n_envs, plans_per_leg=1, seed=0, threads=threads,
-                               **files))
+                               blocks=blocks, **files))
 
 
 def _run(env: TripodEnv, steps: int, rng: np.random.Generator) -> float:
@@ -73,10 +77,11 @@ class _TimedBatch:
 
 
 def measure(n_envs: int, threads: int, steps: int, pack: Path | None = None,
-            batch: bool = False) -> tuple[float, tuple[float, float, float] | None]:
+            batch: bool = False, blocks: int = 1
+            ) -> tuple[float, tuple[float, float, float] | None]:
     """Env steps/s of the environment; with ``batch`` also (ms a step in the batch's calls,
     ms in the rest of the step, env steps/s of the batch alone), else None."""
-    env = _env(n_envs, threads, pack)
+    env = _env(n_envs, threads, pack, blocks)
     rng = np.random.default_rng(0)
     _run(env, WARMUP, rng)
     timed = env.batch = _TimedBatch(env.batch) if batch else env.batch
@@ -164,6 +169,7 @@ def main() -> None:
     p.add_argument("--threads", default="1,2", help="thread counts, e.g. 1,2,4,8,16")
     p.add_argument("--batch", action="store_true",
                    help="also time the MuJoCo batch in the steps and alone")
+    p.add_argument("--blocks", default="1", help="block counts, e.g. 1,2 (EnvConfig.blocks)")
     p.add_argument("--processes", help="process counts, e.g. 1,2,4: the largest thread count split among them")
     p.add_argument("--groups", help="group counts, e.g. 1,2,4: the largest thread count split "
                    "among them")
@@ -175,11 +181,12 @@ def main() -> None:
     counts = _counts(a.threads, "--threads")
     procs = _counts(a.processes, "--processes") if a.processes else []
     groups = _counts(a.groups, "--groups") if a.groups else []
+    blocks = _counts(a.blocks, "--blocks")
     if a.envs < 1 or a.steps < 1:
         raise SystemExit("bench_policy_env: --envs and --steps must be >= 1")
-    if a.envs < max(procs + groups + [1]):
+    if a.envs < max(procs + groups + blocks):
         raise SystemExit(f"bench_policy_env: --envs {a.envs} is fewer than "
-                         f"{max(procs + groups)} processes or groups")
+                         f"{max(procs + groups + blocks)} processes, groups or blocks")
     if a.group_threads is not None and a.group_threads < 1:
         raise SystemExit("bench_policy_env: --group-threads must be >= 1")
     if a.switch_interval is not None:
@@ -194,17 +201,19 @@ def main() -> None:
           f"interval {sys.getswitchinterval() * 1e3:g} ms", flush=True)
     res = {}
     for th in counts:
-        res[th] = measure(a.envs, th, a.steps, a.pack, a.batch)
-        print(f"  {th} thread(s) done", flush=True)
-    base, bbase = res[counts[0]]
-    print(f"| threads | env steps/s | physics steps/s | ratio to {counts[0]} thread(s) |"
+        for k in blocks:
+            res[th, k] = measure(a.envs, th, a.steps, a.pack, a.batch, k)
+            print(f"  {th} thread(s), {k} block(s) done", flush=True)
+    base, bbase = res[counts[0], blocks[0]]
+    print(f"| threads | blocks | env steps/s | physics steps/s | ratio to {counts[0]} thread(s), "
+          f"{blocks[0]} block(s) |"
           + (" batch in the step, ms | rest of the step, ms | batch alone, env steps/s | "
              "batch-alone ratio |" if a.batch else ""))
-    print("| --- | --- | --- | --- |" + (" --- | --- | --- | --- |" if a.batch else ""))
-    for th, (r, b) in res.items():
+    print("| --- | --- | --- | --- | --- |" + (" --- | --- | --- | --- |" if a.batch else ""))
+    for (th, k), (r, b) in res.items():
         extra = (f" {b[0]:.1f} | {b[1]:.1f} | {b[2]:,.0f} | {b[2] / bbase[2]:.2f} |"
                  if b is not None else "")
-        print(f"| {th} | {r:,.0f} | {4 * r:,.0f} | {r / base:.2f} |" + extra)
+        print(f"| {th} | {k} | {r:,.0f} | {4 * r:,.0f} | {r / base:.2f} |" + extra)
     if procs:
         th = max(counts)
         rp = {}

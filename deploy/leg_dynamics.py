@@ -151,16 +151,10 @@ class LegDynamics:
         gravity = np.stack([self.torques(q, still, still, e) for e in np.eye(3)], axis=-1)
         return TorqueTable(motion, gravity, None if limit is None else np.asarray(limit, float))
 
-    def _rotations(self, q: np.ndarray) -> np.ndarray:
-        """(3, N, 3, 3): rotation of each joint frame in its parent's frame at q (N, 3)."""
-        out = np.empty((3, len(q), 3, 3))
-        for k in range(3):
-            a = self._axes[k]
-            kk = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-            s, c1 = np.sin(q[:, k]), 1.0 - np.cos(q[:, k])
-            rot = np.eye(3) + s[:, None, None] * kk + c1[:, None, None] * (kk @ kk)
-            out[k] = self._r0[k] @ rot
-        return out
+    def _arrays(self) -> tuple[np.ndarray, ...]:
+        """The parameters as :func:`_rnea` takes them, for one leg (a leading axis of 1)."""
+        return (self._r0[None], self._p0[None], self._axes[None], self.mass[None],
+                self.com[None], self.inertia[None], np.array([self.rotor_inertia]))
 
     def torques(self, q, dq, ddq, gravity_b=None) -> np.ndarray:
         """Joint torques (N, 3), N m, that move the leg along (q, dq, ddq) with the base still.
@@ -169,37 +163,78 @@ class LegDynamics:
         direction of gravity in the base frame, (N, 3) or (3,) (the projected gravity;
         default level, (0, 0, -1); zero: gravity left out).
         """
-        q, dq, ddq = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (q, dq, ddq))
-        n = max(len(q), len(dq), len(ddq))
-        q, dq, ddq = (np.broadcast_to(x, (n, 3)) for x in (q, dq, ddq))
-        g = np.array([0.0, 0.0, -1.0]) if gravity_b is None else np.asarray(gravity_b, float)
-        g = np.broadcast_to(np.atleast_2d(g), (n, 3))
-        rot = self._rotations(q)
-        w = np.zeros((n, 3))
-        dw = np.zeros((n, 3))
-        acc = -GRAVITY * g  # the base "accelerates up" at g: gravity on every link at once
-        force, moment = [], []
-        for k in range(3):
-            rt = np.swapaxes(rot[k], 1, 2)
-            p = self._p0[k]
-            acc = np.einsum("nij,nj->ni", rt, acc + _cross(dw, p) + _cross(w, _cross(w, p)))
-            w_in = np.einsum("nij,nj->ni", rt, w)
-            sa = dq[:, k, None] * self._axes[k]
-            w = w_in + sa
-            dw = np.einsum("nij,nj->ni", rt, dw) + ddq[:, k, None] * self._axes[k] + _cross(w_in, sa)
-            c = self.com[k]
-            ac = acc + _cross(dw, c) + _cross(w, _cross(w, c))
-            i_w = w @ self.inertia[k].T
-            force.append(self.mass[k] * ac)
-            moment.append(dw @ self.inertia[k].T + _cross(w, i_w))
-        tau = np.empty((n, 3))
-        f_next = np.zeros((n, 3))
-        m_next = np.zeros((n, 3))
-        for k in (2, 1, 0):
-            f = force[k] + f_next
-            m = moment[k] + m_next + _cross(self.com[k], force[k])
-            tau[:, k] = m @ self._axes[k] + self.rotor_inertia * ddq[:, k]
-            if k > 0:  # into the parent's frame, about the parent's origin
-                f_next = np.einsum("nij,nj->ni", rot[k], f)
-                m_next = np.einsum("nij,nj->ni", rot[k], m) + _cross(self._p0[k], f_next)
-        return tau
+        return _rnea(self._arrays(), *_samples(q, dq, ddq, gravity_b))
+
+    @staticmethod
+    def torques_of_legs(legs, q, dq, ddq, gravity_b=None) -> np.ndarray:
+        """:meth:`torques` of several legs in one pass: sample i is leg ``legs[i]`` (N names;
+        the training environment's lifted legs, whose calls one leg at a time cost more than
+        their arithmetic). Other arguments as :meth:`torques`."""
+        q, dq, ddq, g = _samples(q, dq, ddq, gravity_b)
+        names, which = np.unique(np.asarray(legs, dtype=str), return_inverse=True)
+        if which.shape != (len(q),):
+            raise ValueError(f"legs: one name per sample ({len(q)}), not {which.shape}")
+        per_leg = [LegDynamics.of_leg(str(leg))._arrays() for leg in names]
+        # one row of parameters per sample even for one leg: each row computed alone
+        arrays = tuple(np.concatenate(a)[which] for a in zip(*per_leg))
+        return _rnea(arrays, q, dq, ddq, g)
+
+
+def _samples(q, dq, ddq, gravity_b):
+    """q, dq, ddq, gravity direction as (N, 3) each (see :meth:`LegDynamics.torques`)."""
+    q, dq, ddq = (np.atleast_2d(np.asarray(x, dtype=float)) for x in (q, dq, ddq))
+    n = max(len(q), len(dq), len(ddq))
+    q, dq, ddq = (np.broadcast_to(x, (n, 3)) for x in (q, dq, ddq))
+    g = np.array([0.0, 0.0, -1.0]) if gravity_b is None else np.asarray(gravity_b, float)
+    return q, dq, ddq, np.broadcast_to(np.atleast_2d(g), (n, 3))
+
+
+def _mv(a: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Row-wise matrix-vector product, (N or 1, 3, 3) by (N, 3). One matrix for several rows
+    is a single BLAS product; rows of their own matrices are each computed alone, so a row's
+    result does not depend on which rows share its call."""
+    return v @ a[0].T if len(a) == 1 < len(v) else np.einsum("nij,nj->ni", a, v)
+
+
+def _rnea(arrays, q, dq, ddq, g) -> np.ndarray:
+    """Recursive Newton-Euler over the three links, (N, 3) N m. ``arrays``: per-sample leg
+    parameters with a leading axis of N or 1 (:meth:`LegDynamics._arrays`): placement
+    rotations (., 3, 3, 3), translations (., 3, 3), axes (., 3, 3), masses (., 3), centres of
+    mass (., 3, 3), inertias (., 3, 3, 3), rotor inertia (.,); link k is axis 1."""
+    r0, p0, axes, mass, com, inertia, rotor = arrays
+    n = len(q)
+    rot = []  # joint frame k in its parent's at q, (N, 3, 3)
+    for k in range(3):
+        a = axes[:, k]
+        z = np.zeros(len(a))
+        kk = np.stack([z, -a[:, 2], a[:, 1], a[:, 2], z, -a[:, 0], -a[:, 1], a[:, 0], z],
+                      axis=-1).reshape(-1, 3, 3)
+        s, c1 = np.sin(q[:, k]), 1.0 - np.cos(q[:, k])
+        rot.append(r0[:, k] @ (np.eye(3) + s[:, None, None] * kk + c1[:, None, None] * (kk @ kk)))
+    w = np.zeros((n, 3))
+    dw = np.zeros((n, 3))
+    acc = -GRAVITY * g  # the base "accelerates up" at g: gravity on every link at once
+    force, moment = [], []
+    for k in range(3):
+        rt = np.swapaxes(rot[k], 1, 2)
+        p, ax = p0[:, k], axes[:, k]
+        acc = _mv(rt, acc + _cross(dw, p) + _cross(w, _cross(w, p)))
+        w_in = _mv(rt, w)
+        sa = dq[:, k, None] * ax
+        w = w_in + sa
+        dw = _mv(rt, dw) + ddq[:, k, None] * ax + _cross(w_in, sa)
+        c = com[:, k]
+        ac = acc + _cross(dw, c) + _cross(w, _cross(w, c))
+        force.append(mass[:, k, None] * ac)
+        moment.append(_mv(inertia[:, k], dw) + _cross(w, _mv(inertia[:, k], w)))
+    tau = np.empty((n, 3))
+    f_next = np.zeros((n, 3))
+    m_next = np.zeros((n, 3))
+    for k in (2, 1, 0):
+        f = force[k] + f_next
+        m = moment[k] + m_next + _cross(com[:, k], force[k])
+        tau[:, k] = (m * axes[:, k]).sum(-1) + rotor * ddq[:, k]
+        if k > 0:  # into the parent's frame, about the parent's origin
+            f_next = _mv(rot[k], f)
+            m_next = _mv(rot[k], m) + _cross(p0[:, k], f_next)
+    return tau

@@ -320,12 +320,14 @@ class LiftSchedule:
         return out
 
     @staticmethod
-    def feedforward_torque(leg: str, q, dq, ddq, gravity_b=None) -> np.ndarray:
-        """(N, 3) N m: the torque of the planned (q, dq, ddq) of ``leg``, base still, clipped
-        to the motors' effort limits (a bad tilt input must not ask for more)."""
+    def feedforward_torque(leg, q, dq, ddq, gravity_b=None) -> np.ndarray:
+        """(N, 3) N m: the torque of the planned (q, dq, ddq) of ``leg`` (a name, or N names:
+        one per sample), base still, clipped to the motors' effort limits (a bad tilt input
+        must not ask for more)."""
         from deploy.leg_dynamics import LegDynamics  # deferred: reads the URDF once
 
-        tau = LegDynamics.of_leg(leg).torques(q, dq, ddq, gravity_b)
+        tau = (LegDynamics.of_leg(leg).torques(q, dq, ddq, gravity_b) if isinstance(leg, str)
+               else LegDynamics.torques_of_legs(leg, q, dq, ddq, gravity_b))
         return np.clip(tau, -EFFORT_LIMIT, EFFORT_LIMIT)
 
     @staticmethod

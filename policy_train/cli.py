@@ -93,7 +93,7 @@ def _tripod(a) -> int:
                  "steps_per_env": (cfg.ppo, "num_steps_per_env"),
                  "entropy_coef": (cfg.ppo, "entropy_coef"),
                  "lift_leg_weights": (cfg.env, "lift_leg_weights"),
-                 "threads": (cfg.env, "threads"),
+                 "threads": (cfg.env, "threads"), "blocks": (cfg.env, "blocks"),
                  "learning_rate": (cfg.ppo, "learning_rate")}
     for arg, (section, field) in overrides.items():
         if getattr(a, arg) is not None:
@@ -607,6 +607,9 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--threads", type=_positive, default=None,
                    help="threads of the simulation and of the update (default: all CPUs); "
                         "1 each for two runs side by side on two cores")
+    t.add_argument("--blocks", type=_positive, default=None,
+                   help="step the envs in this many blocks, one's numpy while another's physics "
+                        "runs (EnvConfig.blocks; default: 2 with 4 threads or more, else 1)")
     t.add_argument("--device", default="cpu",
                    help="where the networks and PPO's update run: cpu (default) or cuda on a "
                         "machine with a GPU (the simulation stays on the CPU's threads)")

@@ -232,6 +232,10 @@ class EnvConfig:
     lift_leg_weights: tuple[float, float, float, float] = (2.0, 2.0, 1.0, 1.0)  # FL FR RL RR
     seed: int = 0
     threads: int = 0                  # MuJoCo batch threads; 0 = all CPUs
+    # the envs in this many blocks, each's commands computed while another's physics steps,
+    # so that a physics step's numpy overlaps MuJoCo's; 0: 2 where the batch has 4 threads or
+    # more, else 1 (on 2 cores it gains nothing: docs/policy-training.md, "Stop 51")
+    blocks: int = 0
     model_file: str | None = None     # compiled .mjb (TrainModel.save) instead of the URDF
     plan_pool_file: str | None = None  # precomputed PlanPool (.npz) instead of optimising
     # the lifted legs' inverse dynamics (LiftSchedule.save_dynamics_pack) instead of the URDF's through

@@ -18,6 +18,11 @@ through :mod:`calib.joints`.
 
 from __future__ import annotations
 
+import os
+import weakref
+from concurrent.futures import ThreadPoolExecutor
+from itertools import pairwise
+
 import mujoco
 import numpy as np
 from mujoco.batch import Batch
@@ -50,7 +55,7 @@ __all__ = ["LIFT_VALUES", "OBS_NOISE", "PRIV_TERMS", "PlanPool", "TripodEnv", "n
 LIFT_VALUES = {"none": 0, "FL": 1, "FR": 2, "RL": 3, "RR": 4}
 """Value of the ``lift_command`` observation per leg (paper: c_lift in {0, ..., 4})."""
 
-
+_LEG_NAMES = np.array(MODEL_LEGS)  # model leg index -> name
 
 
 def noise_amplitude(terms: list[dict], dr) -> np.ndarray:
@@ -200,6 +205,19 @@ class TripodEnv:
         self.max_episode_length = round(cfg.episode_s / self.dt)
         self.resample_steps = round(cfg.command_resample_s / self.dt)
         self.batch = Batch(m, N, nthread=cfg.threads)
+        if cfg.blocks < 0:
+            raise ValueError(f"blocks must be >= 0 (0: automatic), not {cfg.blocks}")
+        # a training run's blocks may reach an evaluation of fewer envs: at most one env each
+        blocks = min(cfg.blocks, N) if cfg.blocks else (
+            2 if N >= 2 and (cfg.threads or os.cpu_count() or 1) >= 4 else 1)
+        # (rows, ids for Batch.step) per block; one block steps on this thread
+        edges = np.linspace(0, N, blocks + 1).round().astype(int)
+        self._blocks = [(slice(lo, hi), None if blocks == 1 else np.arange(lo, hi))
+                        for lo, hi in pairwise(edges)]
+        self._physics = None
+        if blocks > 1:
+            self._physics = ThreadPoolExecutor(1, thread_name_prefix="tripod-physics")
+            weakref.finalize(self, self._physics.shutdown, wait=False)
         b = self.batch
         self.qpos, self.qvel, self.ctrl = b.bind("qpos"), b.bind("qvel"), b.bind("ctrl")
         self.sensordata, self.act_force = b.bind("sensordata"), b.bind("actuator_force")
@@ -482,12 +500,13 @@ class TripodEnv:
         dq_exc = np.where(hold[:, None], 0.0, dq_exc)
         return blend_targets(t, d, self.lift_q_start[act], q0, q_exc, dq_exc)
 
-    def _lift_targets(self, t: np.ndarray, tick: bool = False):
-        """(ids, joint idx (n, 3), q_des, dq_des, tau (n, 3) N m or None, phase) of envs whose
-        lifted leg is overridden; tau is the feed-forward torque (``cfg.lift_feedforward``,
-        plus the tracking adapter's with ``cfg.lift_adapt``). tick: the policy step's first
-        physics step, where the adapter measures the leg (as deploy does once a tick)."""
-        act = np.flatnonzero(self.lift_leg >= 0)
+    def _lift_targets(self, t: np.ndarray, tick: bool = False, rows: slice = slice(None)):
+        """(ids, joint idx (n, 3), q_des, dq_des, tau (n, 3) N m or None, phase) of the envs of
+        ``rows`` whose lifted leg is overridden, at their lift times ``t`` (N,), s; tau is the
+        feed-forward torque (``cfg.lift_feedforward``, plus the tracking adapter's with
+        ``cfg.lift_adapt``). tick: the policy step's first physics step, where the adapter
+        measures the leg (as deploy does once a tick)."""
+        act = np.arange(self.N)[rows][self.lift_leg[rows] >= 0]
         if len(act) == 0:
             return act, None, None, None, None, np.zeros(0, int)
         d = self.lift_dur[act]
@@ -509,11 +528,10 @@ class TripodEnv:
         if self.cfg.lift_feedforward:
             on = (ph >= 1) & (ph <= 4)
             tau = np.zeros((len(act), 3))
-            for li, leg in enumerate(MODEL_LEGS):
-                m = on & (self.lift_leg[act] == li)
-                if m.any():
-                    tau[m] = LiftSchedule.feedforward_torque(leg, qd[m], dqd[m], ddq[m],
-                                                             self.gravity_b[act[m]])
+            if on.any():  # every leg in one pass: per leg, the calls cost more than the sums
+                tau[on] = LiftSchedule.feedforward_torque(
+                    _LEG_NAMES[self.lift_leg[act[on]]], qd[on], dqd[on], ddq[on],
+                    self.gravity_b[act[on]])
         if self.adapter is not None:
             tau = self._adapt(act, jidx, te, qd, dqd, ddq, tau, ph, tick)
         return act, jidx, qd, dqd, tau, ph
@@ -551,71 +569,33 @@ class TripodEnv:
         self.foot_touch[:] = False
         self.geom_touch[:] = False
         self.base_touch[:] = False
-        lift_touch = np.zeros(self.N, dtype=bool)
+        self.lift_touch = np.zeros(self.N, dtype=bool)
         self.lift_err = np.full((self.N, 3), np.nan)
-        sd = self.sensordata
-        tm = self.tm
-        last = None
-        rows = np.arange(self.N)
+        last = []
+        # each block's commands are computed while the previous block's physics runs (MuJoCo
+        # releases the GIL); a block's next substep waits for its own physics and contacts
+        inflight = None
         for s in range(cfg.decimation):
-            if self.actuation_frames is not None:
-                self._capture_actuation_frames(s)
-            # the command issued now; the motors get the one issued `latency` steps ago
-            ctrl = self.target.copy()
-            kp_s, kd_s = kp.copy(), kd.copy()
             t = self.lift_t + s * cfg.physics_dt
-            act, jidx, qd, dqd, tau, ph = self._lift_targets(t, tick=s == 0)
-            if len(act):
-                self.phase[act] = ph
-                on = (ph >= 1) & (ph <= 4)
-                ai, ji = act[on], jidx[on]
-                if len(ai):
-                    st = self.strength[ai, None] * self.kp_s[ai, None]
-                    kl, dl = cfg.lift_kp * st, cfg.lift_kd * self.kd_s[ai, None] * self.strength[ai, None]
-                    kp_s[ai[:, None], ji] = kl
-                    kd_s[ai[:, None], ji] = dl
-                    # kp (ctrl - q) - kd dq with the drawn gains: kl (qd - q) + dl (dqd - dq)
-                    ctrl[ai[:, None], ji] = qd[on] + (dl / kl) * dqd[on]
-                    if tau is not None:
-                        # the actuator is kp (ctrl - q) - kd dq: tau enters through ctrl,
-                        # scaled by the motor strength as the PD law is
-                        ctrl[ai[:, None], ji] += tau[on] / (cfg.lift_kp * self.kp_s[ai, None])
-                    if s == cfg.decimation - 1:
-                        last = (ai, ji)
-                done = ph == 5
-                if np.any(done):  # schedule over: back to the policy, lift command cleared
-                    # as deploy, the policy's target restarts where the leg is before anything
-                    # is commanded (its actions during the lift moved a target nobody used)
-                    ad, jd = act[done][:, None], jidx[done]
-                    self.lift_leg[act[done]] = -1
-                    self.target[ad, jd] = self.qpos[ad, 7 + jd]
-                    ctrl[ad, jd] = self.target[ad, jd]
-            self.cmd_hist[:, 1:] = self.cmd_hist[:, :-1]
-            self.cmd_hist[:, 0] = np.stack([ctrl, kp_s, kd_s], axis=1)
-            applied = self.cmd_hist[rows, self.latency]
-            self.ctrl[:] = applied[:, 0]
-            self.gainprm[:, :, 0] = applied[:, 1]
-            self.biasprm[:, :, 1] = -applied[:, 1]
-            self.biasprm[:, :, 2] = -applied[:, 2]
-            self.batch.step(nstep=1)
-            fc = sd[:, tm.foot_contact] > 0
-            self.foot_touch |= fc
-            self.geom_touch |= np.abs(sd[:, tm.other_contact + 1]) + np.abs(
-                sd[:, tm.other_contact + 3]) > 1.0
-            self.base_touch |= np.any(sd[:, tm.base_contact] > 0, axis=1)
-            ll = self.lift_leg
-            held = (ll >= 0) & ((self.phase == 2) | (self.phase == 3))
-            lift_touch |= held & fc[np.arange(self.N), np.maximum(ll, 0)]
+            for rows, ids in self._blocks:
+                if inflight is not None and inflight[0] is rows:
+                    self._contacts(self._finish(inflight))
+                    inflight = None
+                self._command(rows, s, t, kp, kd, last)
+                done = self._finish(inflight)
+                inflight = (rows, ids, self._launch(ids))
+                if done is not None:
+                    self._contacts(done)
+        self._contacts(self._finish(inflight))
         # lifted-leg tracking error after the last substep, against the plan at that instant
         # (the target of the substep's start led it by a physics step: 90 % of the figure)
         self.lift_q_des[:] = np.nan
-        if last is not None:
-            ai, ji = last
+        if last:
+            ai, ji = (np.concatenate(x) for x in zip(*last))
             qd_last = self._plan(ai, self.lift_t[ai] + cfg.decimation * cfg.physics_dt)[0]
             self.lift_err[ai] = self.qpos[ai[:, None], 7 + ji] - qd_last
             self.lift_q_des[ai] = qd_last
         self.lift_t += self.dt
-        self.lift_touch = lift_touch
         self.other_touch[:] = self.geom_touch.any(1)
         self.episode_length_buf += 1
         # pushes
@@ -648,6 +628,85 @@ class TripodEnv:
             self._sample_commands(res)
         # a leg still lifted at the resample time finishes its schedule; it gets no new command
         return self.observations(), rew, dones, extras
+
+    def _command(self, rows: slice, s: int, t: np.ndarray, kp: np.ndarray, kd: np.ndarray,
+                 last: list) -> None:
+        """Substep ``s`` of the envs of ``rows``: the policy's targets with the lifted legs'
+        schedule over them, through the actuation-latency buffer into the batch's controls and
+        gains (t (N,) s since each lift command, kp / kd (N, 12) the drawn gains). At the last
+        substep the lifted legs' (envs, joint idx) go to ``last``."""
+        cfg = self.cfg
+        lo = rows.start
+        if self.actuation_frames is not None:
+            self._capture_actuation_frames(s, rows)
+        # the command issued now; the motors get the one issued `latency` steps ago
+        ctrl = self.target[rows].copy()
+        kp_s, kd_s = kp[rows].copy(), kd[rows].copy()
+        act, jidx, qd, dqd, tau, ph = self._lift_targets(t, tick=s == 0, rows=rows)
+        if len(act):
+            self.phase[act] = ph
+            on = (ph >= 1) & (ph <= 4)
+            ai, ji = act[on], jidx[on]
+            if len(ai):
+                r = (ai - lo)[:, None]
+                st = self.strength[ai, None] * self.kp_s[ai, None]
+                kl, dl = cfg.lift_kp * st, cfg.lift_kd * self.kd_s[ai, None] * self.strength[ai, None]
+                kp_s[r, ji] = kl
+                kd_s[r, ji] = dl
+                # kp (ctrl - q) - kd dq with the drawn gains: kl (qd - q) + dl (dqd - dq)
+                ctrl[r, ji] = qd[on] + (dl / kl) * dqd[on]
+                if tau is not None:
+                    # the actuator is kp (ctrl - q) - kd dq: tau enters through ctrl,
+                    # scaled by the motor strength as the PD law is
+                    ctrl[r, ji] += tau[on] / (cfg.lift_kp * self.kp_s[ai, None])
+                if s == cfg.decimation - 1:
+                    last.append((ai, ji))
+            done = ph == 5
+            if np.any(done):  # schedule over: back to the policy, lift command cleared
+                # as deploy, the policy's target restarts where the leg is before anything
+                # is commanded (its actions during the lift moved a target nobody used)
+                ad, jd = act[done][:, None], jidx[done]
+                self.lift_leg[act[done]] = -1
+                self.target[ad, jd] = self.qpos[ad, 7 + jd]
+                ctrl[ad - lo, jd] = self.target[ad, jd]
+        hist = self.cmd_hist[rows]
+        hist[:, 1:] = hist[:, :-1]
+        hist[:, 0] = np.stack([ctrl, kp_s, kd_s], axis=1)
+        applied = hist[np.arange(len(ctrl)), self.latency[rows]]
+        self.ctrl[rows] = applied[:, 0]
+        self.gainprm[rows, :, 0] = applied[:, 1]
+        self.biasprm[rows, :, 1] = -applied[:, 1]
+        self.biasprm[rows, :, 2] = -applied[:, 2]
+
+    def _launch(self, ids: np.ndarray | None):
+        """One physics step of the envs ``ids`` (None: all, here and now); with row blocks,
+        on the physics thread: its future."""
+        if self._physics is None:
+            self.batch.step(nstep=1)
+            return None
+        return self._physics.submit(self.batch.step, ids, 1)
+
+    def _finish(self, inflight) -> slice | None:
+        """Wait for an in-flight physics step (None: nothing in flight); its rows."""
+        if inflight is None:
+            return None
+        rows, _, future = inflight
+        if future is not None:
+            future.result()
+        return rows
+
+    def _contacts(self, rows: slice) -> None:
+        """Accumulate the contacts of the physics step the envs of ``rows`` just took."""
+        tm = self.tm
+        sd = self.sensordata[rows]
+        fc = sd[:, tm.foot_contact] > 0
+        self.foot_touch[rows] |= fc
+        self.geom_touch[rows] |= np.abs(sd[:, tm.other_contact + 1]) + np.abs(
+            sd[:, tm.other_contact + 3]) > 1.0
+        self.base_touch[rows] |= np.any(sd[:, tm.base_contact] > 0, axis=1)
+        ll, phase = self.lift_leg[rows], self.phase[rows]
+        held = (ll >= 0) & ((phase == 2) | (phase == 3))
+        self.lift_touch[rows] |= held & fc[np.arange(len(ll)), np.maximum(ll, 0)]
 
     # ------------------------------------------------------------------ observations
     def _compute_state(self) -> None:
@@ -698,12 +757,14 @@ class TripodEnv:
         sig = self._signals(_quat_rotate_inv(qp[:, 3:7], qv[:, 0:3]), s, previous_actions, ids)
         return build_observation(self.obs_terms, sig, clip=self.cfg.obs_clip)
 
-    def _capture_actuation_frames(self, s: int) -> None:
-        """Clean frames of the envs whose new target reaches the motors at substep ``s`` (their
-        actuation latency; ``s == decimation``: at the step's end, where latencies past one
-        policy step are taken too), seen with the previous action as the last one issued."""
+    def _capture_actuation_frames(self, s: int, rows: slice = slice(None)) -> None:
+        """Clean frames of the envs of ``rows`` whose new target reaches the motors at substep
+        ``s`` (their actuation latency; ``s == decimation``: at the step's end, where latencies
+        past one policy step are taken too), seen with the previous action as the last one
+        issued."""
         last = s == self.cfg.decimation
-        ids = np.flatnonzero(self.latency >= s if last else self.latency == s)
+        lat = self.latency[rows]
+        ids = np.arange(self.N)[rows][lat >= s if last else lat == s]
         if len(ids):
             self.actuation_frames[ids] = self.clean_frame(ids, self.prev_actions[ids])
 

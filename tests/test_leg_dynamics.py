@@ -30,6 +30,20 @@ def test_matches_pinocchio_rnea(leg):
         np.testing.assert_allclose(mine[i], ref + ROTOR_INERTIA * ddq[i, idx], atol=1e-9)
 
 
+def test_several_legs_in_one_pass_are_each_legs_torques():
+    rng = np.random.default_rng(8)
+    legs = np.array(["RR", "FL", "FL", "RL", "FR", "RR", "RL"])
+    q, dq, ddq = (rng.uniform(-lim, lim, (7, 3)) for lim in (1.0, 6.0, 60.0))
+    g = rng.normal(size=(7, 3))
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    mixed = LegDynamics.torques_of_legs(legs, q, dq, ddq, g)
+    for i, leg in enumerate(legs):
+        np.testing.assert_allclose(mixed[i], LegDynamics.of_leg(leg).torques(
+            q[i], dq[i], ddq[i], g[i])[0], atol=1e-12)
+    with pytest.raises(ValueError, match="one name per sample"):
+        LegDynamics.torques_of_legs(legs[:3], q, dq, ddq, g)
+
+
 def test_level_default_and_broadcasting():
     dyn = LegDynamics.of_leg("RL")
     q = np.array([0.0, 0.9, -1.8])

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from calib.excitation import ExcitationConfig
-from calib.joints import model_to_sdk
+from calib.joints import MODEL_LEGS, model_to_sdk
+from deploy.lift_schedule import LiftSchedule, blend_accelerations
 from policy_train import rewards as R
 from policy_train.config import EnvConfig, RewardConfig, TrainConfig
 from policy_train.env import TripodEnv
@@ -142,6 +143,83 @@ def test_lifted_leg_follows_schedule():
     np.testing.assert_allclose(e.q[np.arange(2)[:, None], j] - e.lift_q_des, e.lift_err, atol=1e-9)
     obs = e.observations()["policy"]
     np.testing.assert_allclose(obs[:, 48], 0.25 * np.array([1, 4]))
+
+
+def test_every_substeps_lift_command_is_the_schedule_at_that_substep():
+    """The lifted legs' schedule is computed for a policy step's substeps in one pass: each
+    physics step still gets the plan and feed-forward of its own instant, a leg whose shift
+    ends part-way through a step is latched at that substep, and one whose schedule ends there
+    goes back to the policy's target from where it stands then."""
+    cfg = EnvConfig(num_envs=2, plans_per_leg=1, seed=4, threads=1, terminate_on_contact=False,
+                    p_reference_start=0.0, shift_s=1.01,  # the shift ends at a step's substep 2
+                    p_excite=0.0, hold_range=(2.0, 2.0), lower_s=0.615)  # ends part-way too
+    cfg.dr.enabled = False  # nominal gains and no latency: the motors get the command as sent
+    e = TripodEnv(cfg)
+    e._sample_commands(np.arange(2), legs=np.array([1, 2]))
+    sent, launch = [], e._launch
+
+    def record(ids):
+        sent.append((e.ctrl.copy(), e.qpos.copy(), e.lift_latched.copy()))
+        return launch(ids)
+
+    e._launch = record
+    dt, ids = cfg.physics_dt, np.arange(2)
+    legs = e.lift_leg.copy()
+    joints = 3 * legs[:, None] + np.arange(3)
+    checked, latched_at, ended_at = 0, set(), set()
+    while (e.lift_leg >= 0).any():
+        t0, g = e.lift_t.copy(), e.gravity_b.copy()
+        lifted, target = e.lift_leg >= 0, e.target.copy()  # zero actions keep the target
+        sent.clear()
+        e.step(np.zeros((2, 12)))
+        stand = {}
+        for s, (ctrl, qpos, latched) in enumerate(sent):
+            latched_at |= {s for i in ids if latched[i] and not (sent[s - 1][2][i] if s else True)}
+            t = t0 + s * dt
+            qd, dqd, ph = e._plan(ids, t)
+            k = e.lift_plan
+            ddq_plan = e.pool.sample_acceleration(k, t - e.lift_dur[:, :3].sum(1))
+            ddq = blend_accelerations(t, e.lift_dur, e.lift_q_start, e.pool.q0[k],
+                                      np.where(e.lift_excite[:, None], ddq_plan, 0.0))
+            policy = np.ones((2, 12), dtype=bool)  # joints on the policy's target
+            policy[ids[lifted & (ph >= 1)][:, None], joints[lifted & (ph >= 1)]] = False
+            np.testing.assert_array_equal(ctrl[policy], target[policy])
+            for i in np.flatnonzero(lifted & (ph >= 1) & (ph <= 4)):
+                tau = LiftSchedule.feedforward_torque(MODEL_LEGS[legs[i]], qd[i], dqd[i],
+                                                      ddq[i], g[i])[0]
+                want = qd[i] + cfg.lift_kd / cfg.lift_kp * dqd[i] + tau / cfg.lift_kp
+                np.testing.assert_allclose(ctrl[i, joints[i]], want, atol=1e-12)
+                checked += 1
+            for i in np.flatnonzero(lifted & (ph == 5)):
+                if i not in stand:  # the policy's target from where the leg stands now
+                    stand[i] = qpos[i, 7 + joints[i]]
+                    ended_at.add(s)
+                np.testing.assert_array_equal(ctrl[i, joints[i]], stand[i])
+    # both part-way through a step (where a step's first substep would not tell)
+    assert latched_at == {2} and ended_at and 0 not in ended_at and checked > 400
+
+
+def test_blocks_step_every_env_as_one_block_does():
+    """``EnvConfig.blocks``: the envs stepped in blocks, one block's commands computed while
+    another's physics runs on a second thread, take the same steps as in one block."""
+    def run(blocks):
+        e = TripodEnv(EnvConfig(num_envs=7, plans_per_leg=1, seed=3, threads=1, blocks=blocks,
+                                p_reference_start=0.6, lift_adapt=True))
+        e.actuation_frames = np.zeros((7, 49), dtype=np.float32)
+        rng = np.random.default_rng(0)
+        out = []
+        for _ in range(60):
+            obs, rew, done, _ = e.step(rng.normal(0, 0.3, (7, 12)))
+            out.append(np.concatenate([obs["critic"].ravel(), rew, done, e.qpos.ravel(),
+                                       e.actuation_frames.ravel()]))
+        assert (e._physics is None) == (blocks == 1)
+        return np.array(out)
+
+    np.testing.assert_array_equal(run(1), run(3))
+    with pytest.raises(ValueError, match="blocks"):
+        TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, threads=1, blocks=-1))
+    # a training run's blocks on an evaluation of fewer envs: one env a block
+    assert len(TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, threads=1, blocks=4))._blocks) == 2
 
 
 def test_feedforward_torque_cuts_the_lifted_legs_lag():
