@@ -146,10 +146,10 @@ def test_lifted_leg_follows_schedule():
 
 
 def test_every_substeps_lift_command_is_the_schedule_at_that_substep():
-    """The lifted legs' schedule is computed for a policy step's substeps in one pass: each
-    physics step still gets the plan and feed-forward of its own instant, a leg whose shift
-    ends part-way through a step is latched at that substep, and one whose schedule ends there
-    goes back to the policy's target from where it stands then."""
+    """Each physics step of a policy step gets the lifted leg's plan and feed-forward of its
+    own instant, a leg whose shift ends part-way through a step is latched at that substep,
+    and one whose schedule ends there goes back to the policy's target from where it stands
+    then, the other joints staying on the policy's targets throughout."""
     cfg = EnvConfig(num_envs=2, plans_per_leg=1, seed=4, threads=1, terminate_on_contact=False,
                     p_reference_start=0.0, shift_s=1.01,  # the shift ends at a step's substep 2
                     p_excite=0.0, hold_range=(2.0, 2.0), lower_s=0.615)  # ends part-way too
