@@ -3,7 +3,7 @@ the MuJoCo batch on each thread count asked for, and the ratio to the first coun
 actions on a standing robot. On a machine without the URDF and pinocchio, give the files of
 ``a2i-train pack`` (``--pack DIR``).
 
-Where the scaling goes (docs/policy-training.md, "Stop 50"):
+Where the scaling goes (docs/policy-training.md, "Stop 50" and "Stop 51"):
 
 * ``--batch``: the MuJoCo batch's calls inside the env steps (ms a step) and the rest of the
   step (the time the batch is not stepping: with one block, the numpy on the calling thread,

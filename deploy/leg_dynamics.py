@@ -10,9 +10,10 @@ body meets the same compliance when it is shoved.
 The base is taken as fixed: its rotation rate (under 0.5 rad/s in the tripod) and
 acceleration are left out; only the direction of gravity in the base frame is an input
 (the measured projected gravity, or level). Recursive Newton-Euler over the leg's three
-links, vectorised over samples, with the link inertias of the URDF (the foot sphere merged
-into the calf, as pinocchio merges fixed links) plus the motors' reflected rotor inertia on
-each joint. Pure numpy at run time; pinocchio only reads the URDF once, and a machine without
+links, vectorised over samples (and over legs, one row of parameters per sample, for the
+training environment's lifted legs: :meth:`LegDynamics.torques_of_legs`), with the link
+inertias of the URDF (the foot sphere merged into the calf, as pinocchio merges fixed links)
+plus the motors' reflected rotor inertia on each joint. Pure numpy at run time; pinocchio only reads the URDF once, and a machine without
 the URDF or pinocchio (a lent training machine) loads the same numbers from a pack file
 (:meth:`LegDynamics.save_pack`, written by ``a2i-train pack``).
 """
