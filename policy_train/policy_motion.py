@@ -40,6 +40,7 @@ import numpy as np
 
 from calib.joints import (
     EFFORT_LIMIT,
+    LEGS,
     check_leg,
     model_indices,
     model_to_sdk,
@@ -66,6 +67,7 @@ from sim.free_base_run import (
     RunHealth,
     RunRecorder,
     free_base_sim,
+    push_record,
 )
 from sim.sensors import BodyImuModel, EncoderModel
 
@@ -292,6 +294,8 @@ def run_policy_a2i(
     abort_pending = False
     k_stop = n_total
     tilt_sq, n_tilt = 0.0, 0  # the body's tilt over the excitation (rad^2), as the evaluation
+    pushes = []  # PushRecord of every shove
+    fall_time = None
     for k in range(n_total):
         if k >= k_stop:
             break
@@ -379,7 +383,11 @@ def run_policy_a2i(
         sim.set_command(q_cmd, dq_cmd, kp_c, kd_c, tau_c)
         if sim.time >= next_push:
             v = disturbance.push_vel
-            sim.push([rng.uniform(-v, v), rng.uniform(-v, v), 0.0])
+            dv = [rng.uniform(-v, v), rng.uniform(-v, v), 0.0]
+            lifted = 1 <= phase <= _LOWER
+            pushes.append(push_record(sim, PHASES[phase] if phase >= 0 else "settle", dv,
+                                      [g for g in LEGS if g != leg] if lifted else LEGS))
+            sim.push(dv)
             next_push += rng.uniform(*disturbance.push_interval)
         sim.step()
         # the phase of the state reached after this step
@@ -398,14 +406,16 @@ def run_policy_a2i(
             rec.record(sim, plan_now)
             tilt_sq += sim.base_tilt ** 2
             n_tilt += 1
-        if (k + 1) % 10 == 0:
-            fell |= sim.base_tilt > FALL_TILT or sim.base_pos[2] < FALL_HEIGHT
+        if (k + 1) % 10 == 0 and not fell:
+            fell = sim.base_tilt > FALL_TILT or sim.base_pos[2] < FALL_HEIGHT
+            fall_time = sim.time if fell else None
         if progress is not None and k % max(1, n_total // 20) == 0:
             progress(k / n_total)
     if progress is not None:
         progress(1.0)
     h = health.result()
     h = dataclasses.replace(h, fell=h.fell or bool(fell), aborted=aborted,
+                            fall_time_s=fall_time, pushes=tuple(pushes),
                             excite_tilt_rms_deg=float(np.degrees(np.sqrt(tilt_sq / n_tilt)))
                             if n_tilt else None)
     if aborted is not None:

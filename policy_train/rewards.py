@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim.tripod_pose import polygon_margin
+
 __all__ = [
     "action_rate",
     "ang_vel_xy",
@@ -85,21 +87,10 @@ def lift_clearance(foot_z: np.ndarray, active: np.ndarray, clearance: float) -> 
 def support_margin(com_xy: np.ndarray, feet_xy: np.ndarray, active: np.ndarray,
                    margin: float) -> np.ndarray:
     """How far (m) the centre of mass's ground projection lies short of ``margin`` inside the
-    triangle of the three stance feet: max(0, margin - d), d the signed distance to the nearest
-    edge (positive inside). com_xy (N, 2), feet_xy (N, 3, 2) world m; 0 where not ``active``."""
-    a, b, c = feet_xy[:, 0], feet_xy[:, 1], feet_xy[:, 2]
-
-    def cross(u, v):
-        return u[:, 0] * v[:, 1] - u[:, 1] * v[:, 0]
-
-    orient = np.sign(cross(b - a, c - a))
-    orient = np.where(orient == 0, 1.0, orient)
-    d = []
-    for p, q in ((a, b), (b, c), (c, a)):
-        e = q - p
-        d.append(orient * cross(e, com_xy - p) / np.maximum(np.linalg.norm(e, axis=-1), 1e-6))
-    dmin = np.min(np.stack(d, -1), -1)
-    return np.where(active, np.maximum(0.0, margin - dmin), 0.0)
+    triangle of the three stance feet: max(0, margin - d), d its :func:`polygon_margin`.
+    com_xy (N, 2), feet_xy (N, 3, 2) world m; 0 where not ``active``."""
+    d = polygon_margin(com_xy, feet_xy)
+    return np.where(active, np.maximum(0.0, margin - d), 0.0)
 
 
 def lin_vel(v_b: np.ndarray) -> np.ndarray:

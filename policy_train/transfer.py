@@ -70,7 +70,7 @@ from sim.effects import (
 )
 
 __all__ = ["SCENARIOS", "EpisodeResult", "PairedScenario", "Scenario", "compare",
-           "load_results", "merge_results", "model_identity", "render_comparison",
+           "load_results", "merge_results", "model_identity", "push_summary", "render_comparison",
            "render_markdown", "run_episode", "run_transfer", "summarise", "timed_run",
            "write_results"]
 
@@ -217,7 +217,10 @@ class EpisodeResult:
     rate_rms (rad/s), track_rmse (rad), cn. causes: what failed (empty on success).
     calf_reach_mm: for each leg whose calf touched the floor, the farthest such contact from its
     foot centre, mm (:class:`sim.free_base_run.RunHealth`). retried: why the tip guard called
-    the first lift off, when the episode's figures and outcome are its second lift's."""
+    the first lift off, when the episode's figures and outcome are its second lift's.
+    fall_time_s: s from the run's start to the fall (None: none). pushes: the shoves of the
+    run that counts (:meth:`sim.free_base_run.PushRecord.to_dict`; the capture point's margin
+    in the stance feet's polygon at each)."""
 
     scenario: str
     leg: str
@@ -230,6 +233,8 @@ class EpisodeResult:
     cn: float = float("nan")
     calf_reach_mm: dict[str, float] = field(default_factory=dict)
     retried: str | None = None
+    fall_time_s: float | None = None
+    pushes: list[dict] = field(default_factory=list)
 
 
 TOP_CAUSES = 6
@@ -274,7 +279,9 @@ def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed
         causes.append("lifted foot down")
     causes += [f"{b} on floor" for b in h.body_contacts if b != "base"]
     res = EpisodeResult(scenario.name, leg, episode, not causes, causes,
-                        calf_reach_mm=dict(h.calf_reach_mm), retried=retried)
+                        calf_reach_mm=dict(h.calf_reach_mm), retried=retried,
+                        fall_time_s=h.fall_time_s if h.fell else None,
+                        pushes=[p.to_dict() for p in h.pushes])
     if causes:
         return res
     ramp = 1.0  # the excitation's lead-in / lead-out (calib.excitation.ExcitationConfig.ramp)
@@ -396,6 +403,57 @@ def summarise(results: list[EpisodeResult]) -> dict:
     return out
 
 
+FALL_AFTER_PUSH_S = 1.5
+"""s: a fall this soon after a push is put down to it (the shove falls tipped past the fall
+threshold 0.7-1.0 s after the push)."""
+
+TRIPOD_PHASES = ("lift", "hold", "excite", "lower")
+"""The schedule's phases on three feet."""
+
+
+def push_summary(results: list[EpisodeResult]) -> dict:
+    """{scenario: {"pushes", "outside", "outside_fell", "falls", "falls_outside",
+    "falls_inside", "falls_unpushed", "held_min_cm"}} over the scenarios whose episodes
+    recorded pushes: the pushes given on three feet, how many put the capture point outside
+    the stance feet's triangle (and of those, how many a fall followed within
+    :data:`FALL_AFTER_PUSH_S`), the episodes that fell, split by the last push within that
+    time before the fall (outside, inside, none), and the lowest capture margin, cm, of a push
+    on three feet that no fall followed. Pushes after a fall are left out."""
+    out = {}
+    for s in dict.fromkeys(r.scenario for r in results):
+        rs = [r for r in results if r.scenario == s]
+        if not any(r.pushes for r in rs):
+            continue
+        x = {"pushes": 0, "outside": 0, "outside_fell": 0, "falls": 0, "falls_outside": 0,
+             "falls_inside": 0, "falls_unpushed": 0, "held_min_cm": float("nan")}
+        held = []
+        for r in rs:
+            ft = r.fall_time_s
+            for p in r.pushes:
+                if p["phase"] not in TRIPOD_PHASES or (ft is not None and p["t_s"] > ft):
+                    continue  # a push given to a robot on the floor says nothing
+                followed = ft is not None and ft - p["t_s"] <= FALL_AFTER_PUSH_S
+                x["pushes"] += 1
+                if p["capture_margin_m"] < 0:
+                    x["outside"] += 1
+                    x["outside_fell"] += followed
+                if not followed:
+                    held.append(p["capture_margin_m"])
+            if ft is not None:
+                x["falls"] += 1
+                before = [p for p in r.pushes if 0 <= ft - p["t_s"] <= FALL_AFTER_PUSH_S]
+                if not before:
+                    x["falls_unpushed"] += 1
+                elif before[-1]["capture_margin_m"] < 0:
+                    x["falls_outside"] += 1
+                else:
+                    x["falls_inside"] += 1
+        if held:
+            x["held_min_cm"] = 100 * min(held)
+        out[s] = x
+    return out
+
+
 def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
                     elapsed_s: float | None = None, model: dict | None = None,
                     max_tip=None) -> str:
@@ -457,6 +515,29 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
             f"{100 * x['success']:.0f} %{retry} | {per_leg} % | {x['tilt_rms_deg']:.2f} | "
             f"{x['rate_rms']:.3f} | {x['track_rmse']:.3f} | {x['cn_median']:.3f} "
             f"({x['cn_p90']:.3f}) | {causes} |")
+    pushes = push_summary(results)
+    if pushes:
+        lines += [
+            "",
+            ("**Pushes on three feet and the tripod's capture region.** A push's capture point "
+            "is where the whole robot's centre of mass would have to stand over to stop, "
+            "`c + v / sqrt(g / h)` just after the push (a linear inverted pendulum of its height "
+            "h over the soles); on point feet a push that puts it outside the triangle of the "
+            "three stance feet cannot be held without a step, which the lifted leg must not "
+            "take (`sim.free_base_run.PushRecord`). Counted: the pushes from the lift to the "
+            "end of the lowering; a fall within "
+            f"{FALL_AFTER_PUSH_S:g} s of a push is put down to it; held: the lowest capture "
+            "margin of a push no fall followed (< 0: outside, held all the same)."),
+            "",
+            ("| scenario | pushes on three feet | capture point outside (a fall followed) | "
+             "falls: after a push outside / inside / no push | lowest margin held, cm |"),
+            "|---|---|---|---|---|",
+        ]
+        for s, x in pushes.items():
+            lines.append(
+                f"| {s} | {x['pushes']} | {x['outside']} ({x['outside_fell']}) | "
+                f"{x['falls_outside']} / {x['falls_inside']} / {x['falls_unpushed']} | "
+                f"{x['held_min_cm']:.1f} |")
     if elapsed_s is not None:
         lines += ["", f"Wall time: {elapsed_s:.0f} s."]
     return "\n".join(lines) + "\n"

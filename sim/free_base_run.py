@@ -39,16 +39,19 @@ from calib.motions import Motion, tripod_pose, wave_motion
 from sim.calibration_run import TRACKING_KD, TRACKING_KP, MotionRun
 from sim.go2 import Go2Sim, SimConfig, build_model_for
 from sim.sensors import BodyImuModel, EncoderModel
+from sim.tripod_pose import FOOT_RADIUS, polygon_margin
 from sim.tripod_pose import tripod_pose as static_tripod
 
 __all__ = [
     "FALL_HEIGHT",
     "FALL_TILT",
     "HealthTracker",
+    "PushRecord",
     "RunHealth",
     "RunRecorder",
     "free_base_sim",
     "naive_wave_free",
+    "push_record",
     "run_motion_free",
 ]
 
@@ -62,6 +65,57 @@ shift)."""
 WAVE_MARGIN = 0.05
 """m, where that move puts the centre of mass inside the support triangle (the training's
 reference stances')."""
+
+
+@dataclass(frozen=True)
+class PushRecord:
+    """A shove given to a free-base run, with where it left the robot against its stance.
+
+    t_s: sim time, s. phase: the lift schedule's phase it came in (``"settle"`` before the
+    lift command). dv: the base's horizontal velocity change, m/s, world x and y. stance: the
+    legs the schedule stood on (three while a leg is lifted, from the lift to the end of the
+    lowering; four otherwise). com_margin_m: the ground projection of the whole robot's
+    centre of mass in the polygon of those feet, m (:func:`sim.tripod_pose.polygon_margin`:
+    > 0 inside, < 0 outside), just before the push. capture_margin_m: the same of the
+    instantaneous capture point just after it, ``c + v / w0`` with ``w0 = sqrt(g / h)``, h the
+    centre of mass's height over the stance feet's soles: a linear inverted pendulum on point
+    feet (as the Go2's are) whose capture point leaves the support polygon cannot be stopped
+    without a step, whatever its controller does (a body that turns about its centre of
+    mass gains a little).
+    """
+
+    t_s: float
+    phase: str
+    dv: tuple[float, float]
+    stance: tuple[str, ...]
+    com_margin_m: float
+    capture_margin_m: float
+
+    def to_dict(self) -> dict:
+        return {**self.__dict__, "dv": list(self.dv), "stance": list(self.stance)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PushRecord:
+        return cls(**{**d, "dv": tuple(d["dv"]), "stance": tuple(d["stance"])})
+
+
+def push_record(sim: Go2Sim, phase: str, dv_world, stance) -> PushRecord:
+    """The :class:`PushRecord` of a push of ``dv_world`` (m/s, world; its x and y count)
+    about to be given to ``sim`` now, the robot standing on the legs ``stance``."""
+    stance = tuple(check_leg(g) for g in stance)
+    if len(stance) < 3:
+        raise ValueError(f"a support polygon needs three feet or more, got {stance}")
+    # the feet in order around the body (FL, FR, RR, RL), as polygon_margin takes them
+    ring = [g for g in ("FL", "FR", "RR", "RL") if g in stance]
+    feet = sim.foot_positions[[MODEL_LEGS.index(g) for g in ring]]
+    com, vel = sim.com_state()
+    h = com[2] - float(np.mean(feet[:, 2] - FOOT_RADIUS))
+    w0 = np.sqrt(-float(sim.model.opt.gravity[2]) / max(h, 1e-3))
+    dv = np.asarray(dv_world, dtype=float)[:2]
+    xi = com[:2] + (vel[:2] + dv) / w0
+    m = polygon_margin(np.stack([com[:2], xi]), np.broadcast_to(feet[:, :2], (2, *feet[:, :2].shape)))
+    return PushRecord(float(sim.time), str(phase), (float(dv[0]), float(dv[1])), stance,
+                      float(m[0]), float(m[1]))
 
 
 @dataclass
@@ -81,6 +135,9 @@ class RunHealth:
     off (deploy's tip guard), None if it did not; the watch then ends where it was called off.
     excite_tilt_rms_deg: the tilt RMS over the excitation alone, deg (a policy's run; None for
     the others), what the evaluation reports: ``tilt_rms_deg`` also covers the hold.
+    fall_time_s: sim time, s, at which the run's driver first saw the tilt or the height past
+    the fall thresholds (a policy's run; None if it did not). pushes: the shoves the run was
+    given (:class:`PushRecord`; a policy's run under a disturbance with pushes).
     """
 
     max_tilt_deg: float
@@ -96,17 +153,21 @@ class RunHealth:
     calf_reach_mm: dict[str, float] = field(default_factory=dict)
     aborted: str | None = None
     excite_tilt_rms_deg: float | None = None
+    fall_time_s: float | None = None
+    pushes: tuple[PushRecord, ...] = ()
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
         d["body_contacts"] = list(self.body_contacts)
         d["calf_reach_mm"] = dict(self.calf_reach_mm)
+        d["pushes"] = [p.to_dict() for p in self.pushes]
         return d
 
     @classmethod
     def from_dict(cls, d: dict) -> RunHealth:
         d = dict(d)
         d["body_contacts"] = tuple(d["body_contacts"])
+        d["pushes"] = tuple(PushRecord.from_dict(p) for p in d.get("pushes", ()))
         return cls(**d)
 
 

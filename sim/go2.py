@@ -612,6 +612,14 @@ class Go2Sim:
         self._sync()
         return self.data.sensordata[self._s_acc].copy()
 
+    def com_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """The whole robot's centre of mass (the base's subtree): position, m, and velocity,
+        m/s, both (3,) world frame."""
+        self._sync()
+        m, d = self.model, self.data
+        mujoco.mj_subtreeVel(m, d)  # from the forward pass's body velocities; no state change
+        return d.subtree_com[self._base_id].copy(), d.subtree_linvel[self._base_id].copy()
+
     @property
     def base_tilt(self) -> float:
         """Angle between the base z axis and the world vertical, rad."""

@@ -34,7 +34,7 @@ import numpy as np
 
 from calib.joints import MODEL_LEGS
 
-__all__ = ["FOOT_RADIUS", "TripodPose", "support_point", "tripod_pose"]
+__all__ = ["FOOT_RADIUS", "TripodPose", "polygon_margin", "support_point", "tripod_pose"]
 
 FOOT_RADIUS = 0.022
 """m, height of a foot site above the floor when the foot stands on it."""
@@ -69,6 +69,24 @@ def _edge_distances(p: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndar
         d.append(float(nin @ (p - p0)))
         n.append(nin)
     return np.array(d), np.array(n)
+
+
+def polygon_margin(p_xy: np.ndarray, vertices_xy: np.ndarray) -> np.ndarray:
+    """Signed margin (m) of ground points in convex polygons: inside, the distance to the
+    nearest edge (> 0); outside, minus the farthest past any edge's line (the distance to the
+    polygon beyond an edge, a little less beyond a corner). p_xy (N, 2); vertices_xy
+    (N, k, 2), k >= 3, in order around the polygon, either way (a triangle's in any order)."""
+    p = np.asarray(p_xy, dtype=float)
+    v = np.asarray(vertices_xy, dtype=float)
+
+    def cross(u, w):
+        return u[..., 0] * w[..., 1] - u[..., 1] * w[..., 0]
+
+    orient = np.sign(cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]))
+    orient = np.where(orient == 0, 1.0, orient)
+    e = np.roll(v, -1, axis=1) - v  # (N, k, 2) edges
+    d = orient[:, None] * cross(e, p[:, None] - v) / np.maximum(np.linalg.norm(e, axis=-1), 1e-6)
+    return d.min(axis=1)
 
 
 def support_point(com_xy: np.ndarray, tri: np.ndarray, margin: float) -> np.ndarray:
@@ -169,5 +187,5 @@ def tripod_pose(model: mujoco.MjModel, leg: int, default_pose: np.ndarray, q_lif
         lj = slice(3 * leg, 3 * leg + 3)
         target[lj] = q_lift
         qpos[qadr + 3 * leg: qadr + 3 * leg + 3] = q_lift - tau[lj] / kp_lift
-    margin_now = float(np.min(_edge_distances(com, tri)[0]))
+    margin_now = float(polygon_margin(com[None], tri[None])[0])
     return TripodPose(leg, qpos, target, margin_now, f)

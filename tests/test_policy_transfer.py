@@ -23,6 +23,7 @@ from policy_train.transfer import (
     compare,
     load_results,
     merge_results,
+    push_summary,
     render_markdown,
     run_episode,
     summarise,
@@ -41,7 +42,7 @@ from sim.effects import (
     MotorStrength,
     ViscousFriction,
 )
-from sim.free_base_run import free_base_sim
+from sim.free_base_run import PushRecord, RunHealth, free_base_sim, push_record
 from sim.go2 import Go2Sim, SimConfig
 
 POLICY = Path(__file__).resolve().parents[1] / "policies" / "tripod_go2_v7.onnx"
@@ -183,6 +184,67 @@ def test_push_changes_the_free_base_velocity_only():
         Go2Sim(SimConfig(base="fixed", floor=False)).push([0.1, 0, 0])
 
 
+def test_a_push_record_puts_the_capture_point_where_the_pendulum_says():
+    sim = free_base_sim()  # standing at rest on four feet
+    qvel = sim.data.qvel.copy()
+    still = push_record(sim, "settle", [0.0, 0.0, 0.0], LEGS)
+    assert still.capture_margin_m == pytest.approx(still.com_margin_m, abs=1e-9)
+    assert 0.08 < still.com_margin_m < 0.2 and still.stance == tuple(LEGS)
+    com, _ = sim.com_state()
+    feet = sim.foot_positions  # FL, FR, RL, RR
+    # the right edge (FR-RR): the centre of mass's distance to it, by hand
+    a, b = feet[1, :2], feet[3, :2]
+    e = (b - a) / np.linalg.norm(b - a)
+    d_right = abs(e[0] * (com[1] - a[1]) - e[1] * (com[0] - a[0]))
+    w0 = np.sqrt(9.81 / (com[2] - (feet[:, 2].mean() - 0.022)))
+    right = push_record(sim, "settle", [0.0, -0.5, 0.0], LEGS)
+    assert right.capture_margin_m == pytest.approx(d_right - 0.5 / w0, abs=2e-3)
+    assert right.dv == (0.0, -0.5) and right.t_s == sim.time
+    # on three feet the margin is the triangle's, smaller; a hard shove leaves it
+    tri = push_record(sim, "excite", [0.0, 0.0, 0.0], ["FR", "RL", "RR"])
+    assert tri.com_margin_m < still.com_margin_m and tri.stance == ("FR", "RL", "RR")
+    assert push_record(sim, "excite", [0.0, -1.5, 0.0], ["FR", "RL", "RR"]).capture_margin_m < 0
+    np.testing.assert_array_equal(sim.data.qvel, qvel)  # recorded, not given
+    with pytest.raises(ValueError, match="three feet"):
+        push_record(sim, "excite", [0.0, 0.0, 0.0], ["FR", "RR"])
+    # and it goes through the episodes file with its run
+    h = RunHealth(3.0, 1.0, 0.3, 0.3, (), "FL", False, 0.1, False, 20.0, fall_time_s=None,
+                  pushes=(right,))
+    assert RunHealth.from_dict(json.loads(json.dumps(h.to_dict()))) == h
+
+
+def _push(t, margin, phase="excite"):
+    return PushRecord(t, phase, (0.1, -0.5), ("FR", "RL", "RR"), 0.08, margin).to_dict()
+
+
+def test_push_summary_puts_each_fall_down_to_the_push_before_it():
+    eps = [
+        # a push outside, the fall 0.8 s later; the push after the fall is not counted
+        EpisodeResult("shoves", "FL", 0, False, ["fall"], fall_time_s=7.9,
+                      pushes=[_push(7.1, -0.03), _push(12.0, -0.5)]),
+        # held: one push just outside, one inside; one before the lift is not on three feet
+        EpisodeResult("shoves", "FL", 1, True, pushes=[_push(2.0, -0.2, "shift"),
+                                                       _push(9.0, -0.006), _push(15.0, 0.04)]),
+        # a fall 3 s after a push inside: no push in the 1.5 s before it
+        EpisodeResult("shoves", "FL", 2, False, ["fall"], fall_time_s=8.0,
+                      pushes=[_push(5.0, 0.05)]),
+        # a fall 1 s after a push inside
+        EpisodeResult("shoves", "FR", 0, False, ["fall"], fall_time_s=10.0,
+                      pushes=[_push(9.0, 0.01)]),
+        EpisodeResult("nominal", "FL", 0, True),  # no pushes: no row
+    ]
+    s = push_summary(eps)
+    assert list(s) == ["shoves"]
+    x = s["shoves"]
+    assert (x["pushes"], x["outside"], x["outside_fell"]) == (5, 2, 1)
+    assert (x["falls"], x["falls_outside"], x["falls_inside"], x["falls_unpushed"]) == (3, 1, 1, 1)
+    assert x["held_min_cm"] == pytest.approx(-0.6)
+    page = render_markdown(eps, "p.onnx", 1)
+    assert "| shoves | 5 | 2 (1) | 1 / 1 / 1 | -0.6 |" in page
+    assert "| nominal |" in page.split("capture region")[0]
+    assert "| nominal |" not in page.split("capture region")[1]
+
+
 @pytest.fixture(scope="module")
 def episodes():
     if not POLICY.is_file():
@@ -205,6 +267,13 @@ def test_perturbed_episode_differs_and_summarises(episodes):
     nominal, late = episodes
     # 20-40 ms of latency and the training's noise move the base much more than nothing does
     assert (not late.success) or late.rate_rms > 2 * nominal.rate_rms
+    # the training's pushes, each recorded with the feet it met (three while FL is up)
+    assert nominal.pushes == [] and late.pushes
+    for p in late.pushes:
+        lifted = p["phase"] in ("lift", "hold", "excite", "lower")
+        assert p["stance"] == (["FR", "RL", "RR"] if lifted else list(LEGS))
+        assert max(abs(v) for v in p["dv"]) <= DRConfig().push_vel
+    assert late.fall_time_s is None or "fall" in late.causes
     failed = EpisodeResult("late", "RL", 1, False, ["fall", "RR_calf on floor"])
     brushed = EpisodeResult("soft_floor", "FL", 0, False, ["FR_calf on floor"],
                             calf_reach_mm={"FR": 24.6})

@@ -10,7 +10,7 @@ mujoco = pytest.importorskip("mujoco")
 from calib.excitation import TRIPOD_LIFT_POSE_LEG
 from calib.joints import MODEL_LEGS, default_crouch, pose_for_leg
 from policy_train.model import TrainModel
-from sim.tripod_pose import FOOT_RADIUS, support_point, tripod_pose
+from sim.tripod_pose import FOOT_RADIUS, polygon_margin, support_point, tripod_pose
 
 
 @pytest.fixture(scope="module")
@@ -32,6 +32,18 @@ def _tilt_after(m, qpos, ctrl, leg, seconds):
         m.actuator_gainprm[:], m.actuator_biasprm[:] = gain, bias
     x, y = d.qpos[4:6]
     return np.degrees(np.arccos(np.clip(1 - 2 * (x * x + y * y), -1, 1)))
+
+
+def test_polygon_margin_is_the_signed_distance_to_the_nearest_edge():
+    # four feet in order around, either way; beyond a corner: the farther line crossed
+    quad = np.array([[0.2, 0.1], [0.2, -0.1], [-0.2, -0.1], [-0.2, 0.1]])
+    pts = np.array([[0.0, 0.0], [0.15, 0.05], [0.0, -0.3], [0.3, 0.3]])
+    want = [0.1, 0.05, -0.2, -0.2]
+    for q in (quad, quad[::-1]):
+        np.testing.assert_allclose(polygon_margin(pts, np.broadcast_to(q, (4, 4, 2))), want)
+    tri = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])  # any order of a triangle's corners
+    for t in (tri, tri[[2, 0, 1]], tri[::-1]):
+        assert polygon_margin(np.array([[0.25, 0.25]]), t[None])[0] == pytest.approx(0.25)
 
 
 def test_support_point_is_the_nearest_point_with_the_margin():
