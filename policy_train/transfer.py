@@ -417,8 +417,9 @@ def push_summary(results: list[EpisodeResult]) -> dict:
     recorded pushes: the pushes given on three feet, how many put the capture point outside
     the stance feet's triangle (and of those, how many a fall followed within
     :data:`FALL_AFTER_PUSH_S`), the episodes that fell, split by the last push within that
-    time before the fall (outside, inside, none), and the lowest capture margin, cm, of a push
-    on three feet that no fall followed. Pushes after a fall are left out."""
+    time before the fall (outside, inside, none: a push that met the centre of mass already
+    outside counts as none), and the lowest capture margin, cm, of a push on three feet that
+    no fall followed. Pushes after a fall are left out."""
     out = {}
     for s in dict.fromkeys(r.scenario for r in results):
         rs = [r for r in results if r.scenario == s]
@@ -441,7 +442,9 @@ def push_summary(results: list[EpisodeResult]) -> dict:
                     held.append(p["capture_margin_m"])
             if ft is not None:
                 x["falls"] += 1
-                before = [p for p in r.pushes if 0 <= ft - p["t_s"] <= FALL_AFTER_PUSH_S]
+                # a push that met the centre of mass already past an edge did not start it
+                before = [p for p in r.pushes if 0 <= ft - p["t_s"] <= FALL_AFTER_PUSH_S
+                          and p["com_margin_m"] >= 0]
                 if not before:
                     x["falls_unpushed"] += 1
                 elif before[-1]["capture_margin_m"] < 0:
@@ -526,8 +529,10 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
             "three stance feet cannot be held without a step, which the lifted leg must not "
             "take (`sim.free_base_run.PushRecord`). Counted: the pushes from the lift to the "
             "end of the lowering; a fall within "
-            f"{FALL_AFTER_PUSH_S:g} s of a push is put down to it; held: the lowest capture "
-            "margin of a push no fall followed (< 0: outside, held all the same)."),
+            f"{FALL_AFTER_PUSH_S:g} s of a push is put down to it, unless the centre of mass "
+            "itself was already outside the triangle at the push (no push, then); held: the "
+            "lowest capture margin of a push no fall followed (< 0: outside, held all the "
+            "same)."),
             "",
             ("| scenario | pushes on three feet | capture point outside (a fall followed) | "
              "falls: after a push outside / inside / no push | lowest margin held, cm |"),

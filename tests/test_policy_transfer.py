@@ -213,8 +213,8 @@ def test_a_push_record_puts_the_capture_point_where_the_pendulum_says():
     assert RunHealth.from_dict(json.loads(json.dumps(h.to_dict()))) == h
 
 
-def _push(t, margin, phase="excite"):
-    return PushRecord(t, phase, (0.1, -0.5), ("FR", "RL", "RR"), 0.08, margin).to_dict()
+def _push(t, margin, phase="excite", com=0.08):
+    return PushRecord(t, phase, (0.1, -0.5), ("FR", "RL", "RR"), com, margin).to_dict()
 
 
 def test_push_summary_puts_each_fall_down_to_the_push_before_it():
@@ -231,16 +231,19 @@ def test_push_summary_puts_each_fall_down_to_the_push_before_it():
         # a fall 1 s after a push inside
         EpisodeResult("shoves", "FR", 0, False, ["fall"], fall_time_s=10.0,
                       pushes=[_push(9.0, 0.01)]),
+        # a push that met the centre of mass already outside: it was falling, no push's doing
+        EpisodeResult("shoves", "FR", 1, False, ["fall"], fall_time_s=4.6,
+                      pushes=[_push(4.2, -0.07, com=-0.02)]),
         EpisodeResult("nominal", "FL", 0, True),  # no pushes: no row
     ]
     s = push_summary(eps)
     assert list(s) == ["shoves"]
     x = s["shoves"]
-    assert (x["pushes"], x["outside"], x["outside_fell"]) == (5, 2, 1)
-    assert (x["falls"], x["falls_outside"], x["falls_inside"], x["falls_unpushed"]) == (3, 1, 1, 1)
+    assert (x["pushes"], x["outside"], x["outside_fell"]) == (6, 3, 2)
+    assert (x["falls"], x["falls_outside"], x["falls_inside"], x["falls_unpushed"]) == (4, 1, 1, 2)
     assert x["held_min_cm"] == pytest.approx(-0.6)
     page = render_markdown(eps, "p.onnx", 1)
-    assert "| shoves | 5 | 2 (1) | 1 / 1 / 1 | -0.6 |" in page
+    assert "| shoves | 6 | 3 (2) | 1 / 1 / 2 | -0.6 |" in page
     assert "| nominal |" in page.split("capture region")[0]
     assert "| nominal |" not in page.split("capture region")[1]
 
