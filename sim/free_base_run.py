@@ -74,10 +74,10 @@ class PushRecord:
     t_s: sim time, s. phase: the lift schedule's phase it came in (``"settle"`` before the
     lift command). dv: the base's horizontal velocity change, m/s, world x and y. stance: the
     legs the schedule stood on (three while a leg is lifted, from the lift to the end of the
-    lowering; four otherwise). com_margin_m: the ground projection of the whole robot's
-    centre of mass in the polygon of those feet, m (:func:`sim.tripod_pose.polygon_margin`:
-    > 0 inside, < 0 outside), just before the push. capture_margin_m: the same of the
-    instantaneous capture point just after it, ``c + v / w0`` with ``w0 = sqrt(g / h)``, h the
+    lowering; four otherwise). com_margin_m: the margin, m, of the whole robot's centre of
+    mass (its ground projection) in the polygon of those feet
+    (:func:`sim.tripod_pose.polygon_margin`: > 0 inside, < 0 outside), just before the push.
+    capture_margin_m: the same of the instantaneous capture point just after it, ``c + v / w0`` with ``w0 = sqrt(g / h)``, h the
     centre of mass's height over the stance feet's soles: a linear inverted pendulum on point
     feet (as the Go2's are) whose capture point leaves the support polygon cannot be stopped
     without a step, whatever its controller does (a body that turns about its centre of
