@@ -69,6 +69,7 @@ THIGH_OFFSET_Y = 0.0955  # hip joint -> thigh joint along the hip's y, outward
 THIGH_LENGTH = 0.213  # thigh joint -> calf joint
 CALF_LENGTH = 0.213  # calf joint -> foot centre
 FOOT_RADIUS = 0.022
+"""Radius of the Go2's foot contact sphere, m (the simulator's foot geom, ``sim.model``)."""
 TRUNK_HALF_WIDTH = 0.097  # collision mesh of the base, |y| extent
 TRUNK_BOTTOM_Z = -0.107  # collision mesh of the base, lowest z
 

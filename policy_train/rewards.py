@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from sim.model import FOOT_RADIUS  # a foot site's height when the foot stands on the floor
 from sim.tripod_pose import polygon_margin
 
 __all__ = [
@@ -30,9 +31,6 @@ __all__ = [
     "track_ang_vel",
     "upright",
 ]
-
-FOOT_RADIUS = 0.022
-"""m, height of a Go2 foot site above the floor when the foot stands on it."""
 
 
 def lift_indicator(active: np.ndarray, touching: np.ndarray) -> np.ndarray:

@@ -36,6 +36,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from calib.excitation import FOOT_RADIUS  # the foot contact sphere's radius, m: one for all
 from calib.joints import EFFORT_LIMIT, JOINTS, MODEL_JOINT_NAMES, MODEL_LEGS
 from calib.robot import go2_collision_mesh_dir, go2_urdf_path
 
@@ -56,8 +57,6 @@ __all__ = [
 BASE_MODES = ("free", "fixed", "mocap")
 FOOT_OFFSET = np.array([0.0, 0.0, -0.213])
 """Foot frame origin in the calf frame, m (URDF ``<LEG>_foot_joint``)."""
-FOOT_RADIUS = 0.022
-"""Radius of the foot contact sphere, m."""
 BODY_IMU_OFFSET = np.array([-0.02557, 0.0, 0.04232])
 """Body IMU origin in the base frame, m (URDF ``imu_joint``, no rotation)."""
 FLOOR_FRICTION = (0.8, 0.005, 0.0001)

@@ -33,11 +33,10 @@ import mujoco
 import numpy as np
 
 from calib.joints import MODEL_LEGS
+from sim.model import FOOT_RADIUS  # a foot site's height when the foot stands on the floor
 
 __all__ = ["FOOT_RADIUS", "TripodPose", "polygon_margin", "support_point", "tripod_pose"]
 
-FOOT_RADIUS = 0.022
-"""m, height of a foot site above the floor when the foot stands on it."""
 
 
 @dataclass(frozen=True)
