@@ -404,8 +404,8 @@ def summarise(results: list[EpisodeResult]) -> dict:
 
 
 FALL_AFTER_PUSH_S = 1.5
-"""s: a fall this soon after a push is put down to it (the shove falls tipped past the fall
-threshold 0.7-1.0 s after the push)."""
+"""s: a fall this soon after a push is put down to it (v28's shove falls on Menagerie's model
+tipped past the fall threshold 0.65-0.75 s after the push)."""
 
 TRIPOD_PHASES = ("lift", "hold", "excite", "lower")
 """The schedule's phases on three feet."""
