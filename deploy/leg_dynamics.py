@@ -13,9 +13,10 @@ acceleration are left out; only the direction of gravity in the base frame is an
 links, vectorised over samples (and over legs, one row of parameters per sample, for the
 training environment's lifted legs: :meth:`LegDynamics.torques_of_legs`), with the link
 inertias of the URDF (the foot sphere merged into the calf, as pinocchio merges fixed links)
-plus the motors' reflected rotor inertia on each joint. Pure numpy at run time; pinocchio only reads the URDF once, and a machine without
-the URDF or pinocchio (a lent training machine) loads the same numbers from a pack file
-(:meth:`LegDynamics.save_pack`, written by ``a2i-train pack``).
+plus the motors' reflected rotor inertia on each joint. Pure numpy at run time; pinocchio
+only reads the URDF once, and a machine without the URDF or pinocchio (a lent training
+machine) loads the same numbers from a pack file (:meth:`LegDynamics.save_pack`, written by
+``a2i-train pack``).
 """
 
 from __future__ import annotations
