@@ -35,6 +35,8 @@ from calib.atomic import write_bytes_atomic, write_text_atomic
 from calib.joints import MODEL_LEGS, check_leg
 from deploy.lift_schedule import LiftSchedule
 from policy_train.env import LIFT_VALUES
+from policy_train.rewards import tripod_feet
+from sim.tripod_pose import capture_margins
 
 __all__ = ["BlockRNG", "RefineConfig", "ResidualActor", "paired_rollouts", "refine",
            "refine_start", "residual_columns", "score"]
@@ -52,7 +54,10 @@ class RefineConfig:
     per failed fraction of the episodes. seed: the directions and the episodes' draws
     (generation g plays evaluation seed ``seed + g``). dr: ``DRConfig`` fields set over the
     evaluation's standard ranges for the episodes played (``{"push_vel": 0.5}``: harder
-    shoves, so that falls are frequent enough to have a gradient)."""
+    shoves, so that falls are frequent enough to have a gradient). margin_cost: the score's
+    cost of the capture point's shortfall, rad/s per metre (0: not scored); margin_target: m,
+    how far inside the stance feet's triangle the capture point should stay at its lowest in
+    each episode (the shortfall: :func:`paired_rollouts`'s ``short``)."""
 
     leg: str = "FL"
     pairs: int = 4
@@ -64,6 +69,8 @@ class RefineConfig:
     fail_cost: float = 0.1
     seed: int = 1000
     dr: dict = field(default_factory=dict)
+    margin_cost: float = 0.0
+    margin_target: float = 0.08
 
     def __post_init__(self) -> None:
         from policy_train.config import DRConfig
@@ -76,6 +83,10 @@ class RefineConfig:
             v = getattr(self, k)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{k} must be > 0, got {v}")
+        for k in ("margin_cost", "margin_target"):
+            v = getattr(self, k)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f"{k} must be >= 0, got {v}")
 
     @property
     def scales(self) -> np.ndarray:
@@ -229,13 +240,20 @@ class BlockRNG:
 
 
 def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, candidates,
-                    legs, episodes: int, seed: int, dr_set: dict | None = None) -> list[dict]:
+                    legs, episodes: int, seed: int, dr_set: dict | None = None,
+                    margin_target: float = 0.08) -> list[dict]:
     """Each candidate (D, b) over the same ``episodes`` per leg of ``legs`` (the evaluation's
     environment, :func:`policy_train.evaluate.evaluation_env`, with seed ``seed`` and
     ``dr_set``'s fields over its standard ranges), one batch. Per candidate and leg: ``rate``
     (rad/s RMS of the body rate in the excitation, failed episodes up to their fall, as the
-    evaluation), ``fails`` (falls, other contacts, the lifted foot down), ``track`` (rad). A fallen env is reset with new draws; its push
-    timer is kept with its twins' so the blocks' pushes stay common."""
+    evaluation), ``fails`` (falls, other contacts, the lifted foot down), ``track`` (rad),
+    ``cp_min`` (m: the median over the episodes of each one's lowest margin of the capture
+    point inside the three stance feet over the lift and the excitation while it stood,
+    :func:`sim.tripod_pose.capture_margins` of the whole robot's centre of mass, its velocity
+    from its change over a policy step) and ``short`` (m: the mean over those episodes of how
+    far that lowest margin falls short of ``margin_target``, at most twice that: where a
+    fall starts, it is below 0). A fallen env is reset with new draws; its push timer is kept
+    with its twins' so the blocks' pushes stay common."""
     from policy_train.evaluate import evaluation_env
 
     C = len(candidates)
@@ -255,6 +273,9 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
     alive = np.ones(N, dtype=bool)
     failed = np.zeros(N, dtype=bool)
     rate2, err2, nexc = np.zeros(N), np.zeros(N), np.zeros(N)
+    cp_min = np.full(N, np.inf)
+    base, tm = env.tm.base_body, env.tm
+    com_prev = env.subtree_com[:, base].copy()
     obs = env.observations()["policy"]
     try:
         with torch.no_grad():
@@ -267,6 +288,15 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
                 rate2[exc] += np.sum(env.ang_vel_b[exc] ** 2, 1)
                 err2[exc] += np.nanmean(env.lift_err[exc] ** 2, 1)
                 nexc[exc] += 1
+                com = env.subtree_com[:, base].copy()
+                up = alive & ((env.phase == 2) | (env.phase == 3)) & (env.lift_leg >= 0)
+                if up.any():
+                    feet = tripod_feet(env.sensordata[:, tm.foot_pos[:, None] + np.arange(3)][up],
+                                       env.lift_leg[up])
+                    _, m = capture_margins(com[up], (com[up, :2] - com_prev[up, :2]) / env.dt,
+                                           feet)
+                    cp_min[up] = np.minimum(cp_min[up], m)
+                com_prev = com
                 a, t = alive.reshape(C, B), env.push_timer.reshape(C, B)
                 if not a.all():
                     twin = t[a.argmax(0), np.arange(B)]
@@ -284,14 +314,23 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
             row[leg] = {"rate": float(np.sqrt(rate2[sl][ok].sum() / n)) if n else float("inf"),
                         "fails": int(failed[sl][sel].sum()),
                         "track": float(np.sqrt(err2[sl][ok].sum() / n)) if n else float("inf")}
+            lows = cp_min[sl][sel & np.isfinite(cp_min[sl])]
+            # a fall's margin runs far outside before it ends the episode; fail_cost prices it
+            row[leg]["short"] = (float(np.mean(np.clip(margin_target - lows, 0.0,
+                                                       2 * margin_target)))
+                                 if lows.size else float("inf"))
+            row[leg]["cp_min"] = float(np.median(lows)) if lows.size else float("nan")
         out.append(row)
     return out
 
 
-def score(row: dict, episodes: int, fail_cost: float) -> float:
-    """Sum over the legs of the body-rate RMS (rad/s) plus ``fail_cost`` times the failed
-    fraction; lower is better (inf where a leg never reached its excitation)."""
-    return float(sum(v["rate"] + fail_cost * v["fails"] / episodes for v in row.values()))
+def score(row: dict, episodes: int, fail_cost: float, margin_cost: float = 0.0) -> float:
+    """Sum over the legs of the body-rate RMS (rad/s), ``fail_cost`` times the failed
+    fraction and ``margin_cost`` times the capture point's shortfall (m; not read when 0);
+    lower is better (inf where a leg never reached its excitation)."""
+    return float(sum(v["rate"] + fail_cost * v["fails"] / episodes
+                     + (margin_cost * v["short"] if margin_cost else 0.0)
+                     for v in row.values()))
 
 
 @dataclass
@@ -360,8 +399,8 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
         eps = np.random.default_rng([cfg.seed, gen]).normal(size=(K, dim))
         cands = [theta] + [theta + e for e in eps] + [theta - e for e in eps]
         rows = paired_rollouts(meta, actor, res, [unpack(c * cfg.scales) for c in cands], legs,
-                               cfg.episodes, cfg.seed + gen, cfg.dr)
-        J = np.array([score(r, cfg.episodes, cfg.fail_cost) for r in rows])
+                               cfg.episodes, cfg.seed + gen, cfg.dr, cfg.margin_target)
+        J = np.array([score(r, cfg.episodes, cfg.fail_cost, cfg.margin_cost) for r in rows])
         diff = np.nan_to_num(J[1:K + 1] - J[K + 1:], posinf=1.0, neginf=-1.0) / 2
         grad = diff @ eps / K
         norm = np.linalg.norm(grad)
@@ -376,7 +415,10 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
             {"source": Path(source_onnx).name, "start": start, "config": asdict(cfg),
              **asdict(state)}, indent=1) + "\n")
         log(f"generation {gen}: score {J[0]:.4f} (candidates {J.min():.4f}-{J.max():.4f}); "
-            + ", ".join(f"{g} {v['rate']:.3f} rad/s {v['fails']} failed" for g, v in rows[0].items())
+            + ", ".join(f"{g} {v['rate']:.3f} rad/s {v['fails']} failed, capture point "
+                        f"{100 * v['short']:.2f} cm short of {100 * cfg.margin_target:.0f} "
+                        f"(lowest {100 * v['cp_min']:.1f} cm)"
+                        for g, v in rows[0].items())
             + f"; |residual| {np.linalg.norm(theta):.2f} sigma, {rec['wall_s']:.0f} s")
     return export_refined(source_onnx, out_stem, np.asarray(state.params), cfg, state.history,
                           continued, named_json)

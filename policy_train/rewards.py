@@ -29,6 +29,7 @@ __all__ = [
     "support_margin",
     "torques",
     "track_ang_vel",
+    "tripod_feet",
     "upright",
 ]
 
@@ -80,6 +81,16 @@ def lift_clearance(foot_z: np.ndarray, active: np.ndarray, clearance: float) -> 
     fraction in [0, 1] (1 = on the floor); 0 where no lift is active. foot_z: (N,) site z, m."""
     short = np.clip((clearance - (foot_z - FOOT_RADIUS)) / clearance, 0.0, 1.0)
     return np.where(active, short, 0.0)
+
+
+def tripod_feet(foot_pos: np.ndarray, lifted: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) the three feet other than the lifted one (world m; the first three where no
+    leg is lifted, ``lifted`` < 0), in model order. foot_pos (N, 4, 3), lifted (N,)."""
+    stance = np.ones(foot_pos.shape[:2], dtype=bool)
+    has = lifted >= 0
+    stance[np.flatnonzero(has), lifted[has]] = False
+    order = np.argsort(~stance, axis=1, kind="stable")[:, :3]     # stance feet first
+    return np.take_along_axis(foot_pos, order[:, :, None], 1)
 
 
 def support_margin(com_xy: np.ndarray, feet_xy: np.ndarray, active: np.ndarray,
@@ -134,8 +145,7 @@ def compute_rewards(env) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]
     li = np.maximum(lifted, 0)
     # the body must stand over the stance feet from the lift until the leg is back down
     tripod = has & (env.phase >= 1) & (env.phase <= 4)
-    order = np.argsort(~stance, axis=1, kind="stable")[:, :3]     # stance feet first
-    feet_xy = np.take_along_axis(foot_pos[:, :, :2], order[:, :, None], 1)
+    feet_xy = tripod_feet(foot_pos, lifted)[:, :, :2]
 
     raw = {
         "lift": lift_indicator(active, env.lift_touch),

@@ -39,7 +39,7 @@ from calib.motions import Motion, tripod_pose, wave_motion
 from sim.calibration_run import TRACKING_KD, TRACKING_KP, MotionRun
 from sim.go2 import Go2Sim, SimConfig, build_model_for
 from sim.sensors import BodyImuModel, EncoderModel
-from sim.tripod_pose import FOOT_RADIUS, polygon_margin
+from sim.tripod_pose import capture_margins
 from sim.tripod_pose import tripod_pose as static_tripod
 
 __all__ = [
@@ -109,13 +109,11 @@ def push_record(sim: Go2Sim, phase: str, dv_world, stance) -> PushRecord:
     ring = [g for g in ("FL", "FR", "RR", "RL") if g in stance]
     feet = sim.foot_positions[[MODEL_LEGS.index(g) for g in ring]]
     com, vel = sim.com_state()
-    h = com[2] - float(np.mean(feet[:, 2] - FOOT_RADIUS))
-    w0 = np.sqrt(-float(sim.model.opt.gravity[2]) / max(h, 1e-3))
     dv = np.asarray(dv_world, dtype=float)[:2]
-    xi = com[:2] + (vel[:2] + dv) / w0
-    m = polygon_margin(np.stack([com[:2], xi]), np.broadcast_to(feet[:, :2], (2, *feet[:, :2].shape)))
+    m_com, m_xi = capture_margins(com[None], (vel[:2] + dv)[None], feet[None],
+                                  -float(sim.model.opt.gravity[2]))
     return PushRecord(float(sim.time), str(phase), (float(dv[0]), float(dv[1])), stance,
-                      float(m[0]), float(m[1]))
+                      float(m_com[0]), float(m_xi[0]))
 
 
 @dataclass

@@ -35,7 +35,8 @@ import numpy as np
 from calib.joints import MODEL_LEGS
 from sim.model import FOOT_RADIUS  # a foot site's height when the foot stands on the floor
 
-__all__ = ["FOOT_RADIUS", "TripodPose", "polygon_margin", "support_point", "tripod_pose"]
+__all__ = ["FOOT_RADIUS", "TripodPose", "capture_margins", "polygon_margin", "support_point",
+           "tripod_pose"]
 
 
 
@@ -86,6 +87,22 @@ def polygon_margin(p_xy: np.ndarray, vertices_xy: np.ndarray) -> np.ndarray:
     e = np.roll(v, -1, axis=1) - v  # (N, k, 2) edges
     d = orient[:, None] * cross(e, p[:, None] - v) / np.maximum(np.linalg.norm(e, axis=-1), 1e-6)
     return d.min(axis=1)
+
+
+def capture_margins(com: np.ndarray, vel_xy: np.ndarray, feet: np.ndarray,
+                    gravity: float = 9.81) -> tuple[np.ndarray, np.ndarray]:
+    """(CoM margin, capture-point margin), m, each (N,): the signed :func:`polygon_margin` of
+    the centre of mass's ground projection and of the instantaneous capture point
+    ``c + v / w0``, ``w0 = sqrt(g / h)`` (a linear inverted pendulum on point feet, ``h`` the
+    centre of mass's height over the feet's soles), in the polygon of the stance feet.
+    com (N, 3) world m; vel_xy (N, 2) its horizontal velocity, m/s; feet (N, k, 3) the stance
+    feet's centres (world m, k >= 3, in order around the polygon; a triangle's in any order);
+    gravity m/s^2. A capture point outside the feet cannot be held without a step."""
+    com, v, feet = (np.asarray(a, dtype=float) for a in (com, vel_xy, feet))
+    h = com[:, 2] - np.mean(feet[:, :, 2] - FOOT_RADIUS, axis=1)
+    xi = com[:, :2] + v / np.sqrt(gravity / np.maximum(h, 1e-3))[:, None]
+    m = polygon_margin(np.concatenate([com[:, :2], xi]), np.concatenate([feet[:, :, :2]] * 2))
+    return m[:len(com)], m[len(com):]
 
 
 def support_point(com_xy: np.ndarray, tri: np.ndarray, margin: float) -> np.ndarray:

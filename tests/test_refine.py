@@ -20,6 +20,7 @@ from policy_train.refine import (
     paired_rollouts,
     refine,
     residual_columns,
+    score,
     unpack,
 )
 
@@ -98,6 +99,12 @@ def test_candidates_play_the_same_episodes():
     a, b, c = (r["FL"]["rate"] for r in rows)
     assert abs(c - a) < 1e-2 * a and abs(b - a) > 10 * abs(c - a), (a, b, c)
     assert 0 < rows[0]["FL"]["rate"] < 1 and rows[0]["FL"]["track"] < 0.05
+    # the capture point's lowest margin over the lift: inside the stance feet; the score's
+    # shortfall below 8 cm is a mean over the episodes (convex: at least the median's)
+    fl = rows[0]["FL"]
+    assert 0 < fl["cp_min"] < 0.15 and 0.08 - fl["cp_min"] - 1e-12 <= fl["short"] <= 0.16
+    assert score(rows[0], 2, 0.1, 2.0) == pytest.approx(
+        score(rows[0], 2, 0.1) + 2.0 * rows[0]["FL"]["short"])
     assert res.group is None
 
 

@@ -10,7 +10,13 @@ mujoco = pytest.importorskip("mujoco")
 from calib.excitation import TRIPOD_LIFT_POSE_LEG
 from calib.joints import MODEL_LEGS, default_crouch, pose_for_leg
 from policy_train.model import TrainModel
-from sim.tripod_pose import FOOT_RADIUS, polygon_margin, support_point, tripod_pose
+from sim.tripod_pose import (
+    FOOT_RADIUS,
+    capture_margins,
+    polygon_margin,
+    support_point,
+    tripod_pose,
+)
 
 
 @pytest.fixture(scope="module")
@@ -44,6 +50,17 @@ def test_polygon_margin_is_the_signed_distance_to_the_nearest_edge():
     tri = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])  # any order of a triangle's corners
     for t in (tri, tri[[2, 0, 1]], tri[::-1]):
         assert polygon_margin(np.array([[0.25, 0.25]]), t[None])[0] == pytest.approx(0.25)
+
+
+def test_capture_margins_put_the_capture_point_where_the_pendulum_says():
+    # soles on the floor (foot centres FOOT_RADIUS up), the centre of mass 0.4 m over them:
+    # 1 / w0 = sqrt(0.4 / 9.81) s
+    tri = np.array([[0.0, 0.0, FOOT_RADIUS], [1.0, 0.0, FOOT_RADIUS], [0.0, 1.0, FOOT_RADIUS]])
+    com = np.array([[0.25, 0.25, 0.4], [0.25, 0.25, 0.4], [0.5, 0.1, 0.4]])
+    vel = np.array([[0.0, 0.0], [0.0, -1.0], [0.0, 0.0]])
+    m_com, m_xi = capture_margins(com, vel, np.broadcast_to(tri, (3, 3, 3)))
+    np.testing.assert_allclose(m_com, [0.25, 0.25, 0.1])
+    np.testing.assert_allclose(m_xi, [0.25, 0.25 - np.sqrt(0.4 / 9.81), 0.1])
 
 
 def test_support_point_is_the_nearest_point_with_the_margin():
