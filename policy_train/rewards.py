@@ -26,6 +26,7 @@ __all__ = [
     "lin_vel",
     "orientation",
     "slip",
+    "stance_mask",
     "support_margin",
     "torques",
     "track_ang_vel",
@@ -83,13 +84,19 @@ def lift_clearance(foot_z: np.ndarray, active: np.ndarray, clearance: float) -> 
     return np.where(active, short, 0.0)
 
 
+def stance_mask(lifted: np.ndarray) -> np.ndarray:
+    """(N, 4) bool: every foot but the lifted one (``lifted`` (N,), model leg index; < 0:
+    none lifted, all four)."""
+    stance = np.ones((len(lifted), 4), dtype=bool)
+    has = lifted >= 0
+    stance[np.flatnonzero(has), lifted[has]] = False
+    return stance
+
+
 def tripod_feet(foot_pos: np.ndarray, lifted: np.ndarray) -> np.ndarray:
     """(N, 3, 3) the three feet other than the lifted one (world m; the first three where no
     leg is lifted, ``lifted`` < 0), in model order. foot_pos (N, 4, 3), lifted (N,)."""
-    stance = np.ones(foot_pos.shape[:2], dtype=bool)
-    has = lifted >= 0
-    stance[np.flatnonzero(has), lifted[has]] = False
-    order = np.argsort(~stance, axis=1, kind="stable")[:, :3]     # stance feet first
+    order = np.argsort(~stance_mask(lifted), axis=1, kind="stable")[:, :3]  # stance first
     return np.take_along_axis(foot_pos, order[:, :, None], 1)
 
 
@@ -135,9 +142,8 @@ def compute_rewards(env) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]
 
     lifted = env.lift_leg
     active = (lifted >= 0) & ((env.phase == 2) | (env.phase == 3))
-    stance = np.ones((N, 4), dtype=bool)
+    stance = stance_mask(lifted)
     has = lifted >= 0
-    stance[np.flatnonzero(has), lifted[has]] = False
     foot_vel = sd[:, tm.foot_vel[:, None] + np.arange(2)]
     contact_now = sd[:, tm.foot_contact] > 0
     other_f = np.linalg.norm(sd[:, tm.other_contact[:, None] + 1 + np.arange(3)], axis=-1)

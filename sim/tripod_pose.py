@@ -39,7 +39,6 @@ __all__ = ["FOOT_RADIUS", "TripodPose", "capture_margins", "polygon_margin", "su
            "tripod_pose"]
 
 
-
 @dataclass(frozen=True)
 class TripodPose:
     """A level tripod stance in static equilibrium.
