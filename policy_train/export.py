@@ -82,16 +82,24 @@ def average_checkpoints(ckpts: list[dict]) -> dict:
             "averaged_iterations": sorted(int(d["iter"]) for d in ckpts)}
 
 
-def git_commit() -> str:
-    """``git rev-parse HEAD`` (+ ``-dirty``), or ``unknown`` outside a repository."""
+def git_commit(repo: str | Path | None = None) -> str:
+    """``git rev-parse HEAD`` of the repository at ``repo`` (default: the one this package is
+    in, wherever the command runs from), + ``-dirty`` when a tracked file differs from it or
+    a Python file is not yet tracked; ``unknown`` outside a repository. The files a run writes
+    beside the code (policies, pages, ES states) are not the code: left untracked while
+    it runs, they would have made every policy trained or refined in a checkout read dirty."""
+    repo = Path(__file__).resolve().parents[1] if repo is None else Path(repo)
     try:
-        head = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                              check=True, timeout=10).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain"], capture_output=True, text=True,
-                               check=True, timeout=10).stdout.strip()
-        return head + ("-dirty" if dirty else "")
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True,
+                              text=True, check=True, timeout=10).stdout.strip()
+        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=all"],
+                                cwd=repo, capture_output=True, text=True, check=True,
+                                timeout=10).stdout.splitlines()
     except (OSError, subprocess.SubprocessError):
         return "unknown"
+    dirty = any(not line.startswith("??") or line.rstrip().rstrip('"').endswith(".py")
+                for line in status)  # porcelain quotes a name with odd characters
+    return head + ("-dirty" if dirty else "")
 
 
 def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,

@@ -1010,3 +1010,33 @@ def test_derive_stand_holds_the_default_pose_while_no_leg_is_lifted(exported, tm
     h = settle(tmp_path / "h.json")  # sagged under the PD law, at rest
     assert h.settled and h.error_rad > MAX_SETTLED_ERROR and h.drift_rad < 0.005
     refused(tmp_path / "h.onnx", tmp_path / "t", "already has a stand", "hold")
+
+
+def test_commit_reads_dirty_for_changed_code_not_for_a_runs_outputs(tmp_path):
+    from policy_train.export import git_commit
+
+    def git(*args):
+        subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path,
+                       check=True, capture_output=True)
+
+    assert git_commit(tmp_path) == "unknown"  # not a repository
+    git("init", "-q")
+    (tmp_path / "code.py").write_text("x = 1\n")
+    git("add", "code.py")
+    git("commit", "-q", "-m", "c")
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=tmp_path, capture_output=True,
+                          text=True, check=True).stdout.strip()
+    assert git_commit(tmp_path) == head
+    (tmp_path / "policies").mkdir()
+    (tmp_path / "policies" / "p.onnx").write_bytes(b"\0")  # what a run writes: still clean
+    (tmp_path / "p.refine.json").write_text("{}")
+    assert git_commit(tmp_path) == head
+    (tmp_path / "policies" / "new.py").write_text("")  # code not yet added
+    assert git_commit(tmp_path) == head + "-dirty"
+    (tmp_path / "policies" / "new.py").unlink()
+    (tmp_path / "code.py").write_text("x = 2\n")  # tracked code changed
+    assert git_commit(tmp_path) == head + "-dirty"
+    # the default is this package's repository, wherever the command runs from
+    assert git_commit().split("-")[0] == subprocess.run(
+        ["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parents[1],
+        capture_output=True, text=True, check=True).stdout.strip()
