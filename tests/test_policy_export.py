@@ -1012,8 +1012,11 @@ def test_derive_stand_holds_the_default_pose_while_no_leg_is_lifted(exported, tm
     refused(tmp_path / "h.onnx", tmp_path / "t", "already has a stand", "hold")
 
 
-def test_commit_reads_dirty_for_changed_code_not_for_a_runs_outputs(tmp_path):
+def test_commit_reads_dirty_for_changed_code_not_for_a_runs_outputs(tmp_path, monkeypatch):
     from policy_train.export import git_commit
+
+    # git must not find a repository above tmp_path (a checkout that holds /tmp, say)
+    monkeypatch.setenv("GIT_CEILING_DIRECTORIES", str(tmp_path.parent))
 
     def git(*args):
         subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args], cwd=tmp_path,
