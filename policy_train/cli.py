@@ -24,7 +24,8 @@
                                     or some legs', or the lifted leg's tracking adapter)
   a2i-train refine policies/NAME.onnx --out policies/OTHER [--generations 40] [--leg FL]
                    [--pairs 4] [--episodes 24] [--fail-cost 0.1] [--dr FIELD=VALUE ...]
-                   [--margin-cost C] [--margin-target 0.08] [--seed 1000] [--state F] [--resume]
+                   [--margin-cost C] [--margin-target 0.08] [--tilt-cost C] [--tilt-target 1]
+                   [--seed 1000] [--state F] [--resume]
                                    (a linear residual on the body's rate and tilt, by ES;
                                     of a refined policy: goes on from its residual)
   a2i-train pack OUTDIR            (compiled model, plan pool and leg dynamics for a machine
@@ -230,7 +231,8 @@ def _refine(a) -> int:
         raise ValueError(f"--resume: no state {state}")
     cfg = RefineConfig(leg=a.leg, pairs=a.pairs, episodes=a.episodes, step=a.step,
                        fail_cost=a.fail_cost, seed=a.seed, dr=dict(a.dr),
-                       margin_cost=a.margin_cost, margin_target=a.margin_target)
+                       margin_cost=a.margin_cost, margin_target=a.margin_target,
+                       tilt_cost=a.tilt_cost, tilt_target_deg=a.tilt_target)
     print(f"refine: {a.onnx}, {a.generations} generations of {2 * cfg.pairs + 1} candidates x "
           f"{cfg.episodes} episodes per leg, state {state}", flush=True)
     onnx_path, json_path = refine(a.onnx, a.out, a.generations, cfg, state, resume=a.resume_state,
@@ -754,6 +756,11 @@ def main(argv: list[str] | None = None) -> int:
                    default=0.08,
                    help="m inside the stance feet's triangle the capture point should keep "
                    "(default 0.08)")
+    r.add_argument("--tilt-cost", type=_number(0.0, 1000.0, "must be in [0, 1000)"), default=0.0,
+                   help="the score's cost of the body's tilt RMS in the excitation beyond "
+                   "--tilt-target, rad/s per rad (default 0: not scored)")
+    r.add_argument("--tilt-target", type=_number(0.0, 30.0, "must be in [0, 30) deg"),
+                   default=1.0, help="deg of tilt RMS the score lets pass (default 1)")
     r.add_argument("--dr", type=_dr_setting, action="append", default=[], metavar="FIELD=VALUE",
                    help="a DRConfig field over the standard ranges for the episodes played "
                    "(repeatable), e.g. --dr push_vel=0.5 for harder shoves")

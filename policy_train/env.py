@@ -717,6 +717,8 @@ class TripodEnv:
         self.lin_vel_b = _quat_rotate_inv(self.quat, qv[:, 0:3])
         self.ang_vel_b = qv[:, 3:6].copy()
         self.gravity_b = projected_gravity(self.quat)
+        # rad from the vertical: what falls end on, and the evaluation's and refine's tilt
+        self.tilt = np.arccos(np.clip(-self.gravity_b[:, 2], -1.0, 1.0))
         self.q = qp[:, 7:19]
         self.dq = qv[:, 6:18]
 

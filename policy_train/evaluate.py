@@ -187,8 +187,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
             calf_min[exc] = np.minimum(calf_min[exc], np.where(stance[exc], low, np.inf).min(1))
             pinned = np.isclose(env.target[exc][:, _CALVES], env.soft_hi[_CALVES]) & stance[exc]
             on_clamp[exc] += pinned.sum(1) / 3.0
-            tilt = np.arccos(np.clip(-env.gravity_b[:, 2], -1, 1))
-            tilt2[exc] += tilt[exc] ** 2
+            tilt2[exc] += env.tilt[exc] ** 2
             rate2[exc] += np.sum(env.ang_vel_b[exc] ** 2, 1)
             err2[exc] += np.nanmean(env.lift_err[exc] ** 2, 1)
             nexc[exc] += 1

@@ -57,7 +57,10 @@ class RefineConfig:
     shoves, so that falls are frequent enough to have a gradient). margin_cost: the score's
     cost of the capture point's shortfall, rad/s per metre (0: not scored); margin_target: m,
     how far inside the stance feet's triangle the capture point should stay at its lowest in
-    each episode (the shortfall: :func:`paired_rollouts`'s ``short``)."""
+    each episode (the shortfall: :func:`paired_rollouts`'s ``short``). tilt_cost: the score's
+    cost of the body's tilt RMS over the excitation beyond ``tilt_target_deg``, rad/s per rad
+    (0: not scored): a residual that keeps the capture point in by leaning the body pays for
+    the lean (docs/policy-training.md, stop 55)."""
 
     leg: str = "FL"
     pairs: int = 4
@@ -71,6 +74,13 @@ class RefineConfig:
     dr: dict = field(default_factory=dict)
     margin_cost: float = 0.0
     margin_target: float = 0.08
+    tilt_cost: float = 0.0
+    tilt_target_deg: float = 1.0
+
+    @property
+    def tilt_target(self) -> float:
+        """rad: the tilt RMS the score lets pass unpriced."""
+        return float(np.radians(self.tilt_target_deg))
 
     def __post_init__(self) -> None:
         from policy_train.config import DRConfig
@@ -83,7 +93,7 @@ class RefineConfig:
             v = getattr(self, k)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{k} must be > 0, got {v}")
-        for k in ("margin_cost", "margin_target"):
+        for k in ("margin_cost", "margin_target", "tilt_cost", "tilt_target_deg"):
             v = getattr(self, k)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"{k} must be >= 0, got {v}")
@@ -246,7 +256,8 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
     environment, :func:`policy_train.evaluate.evaluation_env`, with seed ``seed`` and
     ``dr_set``'s fields over its standard ranges), one batch. Per candidate and leg: ``rate``
     (rad/s RMS of the body rate in the excitation, failed episodes up to their fall, as the
-    evaluation), ``fails`` (falls, other contacts, the lifted foot down), ``track`` (rad),
+    evaluation), ``tilt`` (rad RMS of the body's tilt from the vertical, over the same steps),
+    ``fails`` (falls, other contacts, the lifted foot down), ``track`` (rad),
     ``cp_min`` (m: the median over the episodes of each one's lowest margin of the capture
     point inside the three stance feet over the lift and the excitation while it stood,
     :func:`sim.tripod_pose.capture_margins` of the whole robot's centre of mass, its velocity
@@ -272,7 +283,7 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
     n_steps = int(np.ceil((max(float(sched.total(g)) for g in legs) + 0.5) / env.dt))
     alive = np.ones(N, dtype=bool)
     failed = np.zeros(N, dtype=bool)
-    rate2, err2, nexc = np.zeros(N), np.zeros(N), np.zeros(N)
+    rate2, tilt2, err2, nexc = np.zeros(N), np.zeros(N), np.zeros(N), np.zeros(N)
     cp_min = np.full(N, np.inf)
     base, tm = env.tm.base_body, env.tm
     com_prev = env.subtree_com[:, base].copy()
@@ -286,6 +297,7 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
                 failed |= ~alive | ((env.other_touch | env.lift_touch) & alive)
                 exc = alive & (env.phase == 3)
                 rate2[exc] += np.sum(env.ang_vel_b[exc] ** 2, 1)
+                tilt2[exc] += env.tilt[exc] ** 2
                 err2[exc] += np.nanmean(env.lift_err[exc] ** 2, 1)
                 nexc[exc] += 1
                 com = env.subtree_com[:, base].copy()
@@ -312,6 +324,7 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
             ok = sel & (nexc[sl] > 0)
             n = nexc[sl][ok].sum()
             row[leg] = {"rate": float(np.sqrt(rate2[sl][ok].sum() / n)) if n else float("inf"),
+                        "tilt": float(np.sqrt(tilt2[sl][ok].sum() / n)) if n else float("inf"),
                         "fails": int(failed[sl][sel].sum()),
                         "track": float(np.sqrt(err2[sl][ok].sum() / n)) if n else float("inf")}
             lows = cp_min[sl][sel & np.isfinite(cp_min[sl])]
@@ -324,12 +337,15 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
     return out
 
 
-def score(row: dict, episodes: int, fail_cost: float, margin_cost: float = 0.0) -> float:
+def score(row: dict, episodes: int, fail_cost: float, margin_cost: float = 0.0,
+          tilt_cost: float = 0.0, tilt_target: float = 0.0) -> float:
     """Sum over the legs of the body-rate RMS (rad/s), ``fail_cost`` times the failed
-    fraction and ``margin_cost`` times the capture point's shortfall (m; not read when 0);
-    lower is better (inf where a leg never reached its excitation)."""
+    fraction, ``margin_cost`` times the capture point's shortfall (m) and ``tilt_cost`` times
+    the tilt RMS beyond ``tilt_target`` (rad); a cost of 0 does not read its figure. Lower is
+    better (inf where a leg never reached its excitation)."""
     return float(sum(v["rate"] + fail_cost * v["fails"] / episodes
                      + (margin_cost * v["short"] if margin_cost else 0.0)
+                     + (tilt_cost * max(v["tilt"] - tilt_target, 0.0) if tilt_cost else 0.0)
                      for v in row.values()))
 
 
@@ -400,7 +416,8 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
         cands = [theta] + [theta + e for e in eps] + [theta - e for e in eps]
         rows = paired_rollouts(meta, actor, res, [unpack(c * cfg.scales) for c in cands], legs,
                                cfg.episodes, cfg.seed + gen, cfg.dr, cfg.margin_target)
-        J = np.array([score(r, cfg.episodes, cfg.fail_cost, cfg.margin_cost) for r in rows])
+        J = np.array([score(r, cfg.episodes, cfg.fail_cost, cfg.margin_cost, cfg.tilt_cost,
+                            cfg.tilt_target) for r in rows])
         diff = np.nan_to_num(J[1:K + 1] - J[K + 1:], posinf=1.0, neginf=-1.0) / 2
         grad = diff @ eps / K
         norm = np.linalg.norm(grad)
@@ -415,7 +432,8 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
             {"source": Path(source_onnx).name, "start": start, "config": asdict(cfg),
              **asdict(state)}, indent=1) + "\n")
         log(f"generation {gen}: score {J[0]:.4f} (candidates {J.min():.4f}-{J.max():.4f}); "
-            + ", ".join(f"{g} {v['rate']:.3f} rad/s {v['fails']} failed, capture point "
+            + ", ".join(f"{g} {v['rate']:.3f} rad/s, tilt {np.degrees(v['tilt']):.2f} deg, "
+                        f"{v['fails']} failed, capture point "
                         f"{100 * v['short']:.2f} cm short of {100 * cfg.margin_target:.0f} "
                         f"(lowest {100 * v['cp_min']:.1f} cm)"
                         for g, v in rows[0].items())

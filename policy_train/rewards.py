@@ -135,7 +135,7 @@ def compute_rewards(env) -> tuple[np.ndarray, dict[str, np.ndarray], np.ndarray]
     N, dt = env.N, env.dt
     sd, tm = env.sensordata, env.tm
     h = env.base_pos[:, 2]
-    tilt = np.arccos(np.clip(-env.gravity_b[:, 2], -1.0, 1.0))
+    tilt = env.tilt
     terminated = env.base_touch | (tilt > cfg.fall_tilt) | (h < cfg.fall_height)
     if cfg.terminate_on_contact:
         terminated = terminated | env.other_touch | env.lift_touch

@@ -105,6 +105,12 @@ def test_candidates_play_the_same_episodes():
     assert 0 < fl["cp_min"] < 0.15 and 0.08 - fl["cp_min"] - 1e-12 <= fl["short"] <= 0.16
     assert score(rows[0], 2, 0.1, 2.0) == pytest.approx(
         score(rows[0], 2, 0.1) + 2.0 * rows[0]["FL"]["short"])
+    # the tilt from the vertical over the excitation: the crouch's lean, priced beyond a target
+    assert np.radians(0.1) < fl["tilt"] < np.radians(5)
+    assert score(rows[0], 2, 0.1, 0.0, 3.0, 0.0) == pytest.approx(
+        score(rows[0], 2, 0.1) + 3.0 * fl["tilt"])
+    assert score(rows[0], 2, 0.1, 0.0, 3.0, fl["tilt"] + 1e-3) == score(rows[0], 2, 0.1)
+    assert rows[1]["FL"]["tilt"] != fl["tilt"]
     assert res.group is None
 
 
@@ -176,7 +182,7 @@ def test_a_refined_policy_goes_on_from_its_residual(tmp_path):
 @pytest.mark.parametrize(("extra", "hint"), [
     (["--leg", "FL,FR"], "one leg"), (["--leg", "XX"], "XX"), (["--pairs", "0"], "pairs"),
     (["--resume", "--state", "nowhere.json"], "no state"), (["--dr", "shove=1"], "FIELD"),
-    (["--fail-cost", "0"], "fail-cost")])
+    (["--fail-cost", "0"], "fail-cost"), (["--tilt-cost", "-1"], "tilt-cost")])
 def test_bad_refine_exits_with_one_line(extra, hint, tmp_path):
     p = subprocess.run([sys.executable, "-m", "policy_train.cli", "refine", str(V21), "--out",
                         str(tmp_path / "o"), "--generations", "1", *extra],
