@@ -232,7 +232,8 @@ def _refine(a) -> int:
     cfg = RefineConfig(leg=a.leg, pairs=a.pairs, episodes=a.episodes, step=a.step,
                        fail_cost=a.fail_cost, seed=a.seed, dr=dict(a.dr),
                        margin_cost=a.margin_cost, margin_target=a.margin_target,
-                       tilt_cost=a.tilt_cost, tilt_target_deg=a.tilt_target)
+                       tilt_cost=a.tilt_cost, tilt_target_deg=a.tilt_target,
+                       velocity=a.velocity)
     print(f"refine: {a.onnx}, {a.generations} generations of {2 * cfg.pairs + 1} candidates x "
           f"{cfg.episodes} episodes per leg, state {state}", flush=True)
     onnx_path, json_path = refine(a.onnx, a.out, a.generations, cfg, state, resume=a.resume_state,
@@ -761,6 +762,9 @@ def main(argv: list[str] | None = None) -> int:
                    "--tilt-target, rad/s per rad (default 0: not scored)")
     r.add_argument("--tilt-target", type=_number(0.0, 30.0, "must be in [0, 30) deg"),
                    default=1.0, help="deg of tilt RMS the score lets pass (default 1)")
+    r.add_argument("--velocity", action="store_true",
+                   help="the residual also reads the base's horizontal velocity from the stance "
+                   "legs' joint rates (96 parameters instead of 72)")
     r.add_argument("--dr", type=_dr_setting, action="append", default=[], metavar="FIELD=VALUE",
                    help="a DRConfig field over the standard ranges for the episodes played "
                    "(repeatable), e.g. --dr push_vel=0.5 for harder shoves")

@@ -318,8 +318,10 @@ def _refined(meta: dict) -> str:
     c = r.get("continued_from")
     went_on = (f" (the last {len(r['generations']) - c['generations']} going on from "
                f"`{c['policy']}`'s residual{played})" if c else played)
+    reads = ("rate, tilt and the stance legs' velocity" if len(r.get("inputs", ())) > 5
+             else "rate and tilt")
     return (f"; then {len(r['generations'])} generations of `a2i-train refine` on "
-            f"`{r['policy']}`{went_on}: a linear residual on the body's rate and tilt for the "
+            f"`{r['policy']}`{went_on}: a linear residual on the body's {reads} for the "
             f"{' and '.join(r['legs'])} lifts, tuned by evolution strategies")
 
 

@@ -18,6 +18,15 @@ command is the refined leg's::
 body's rate adds an attitude term to the targets, ``D`` on the tilt an integral one, and
 ``b`` a steady drift the policy must meet. Legs whose lifts the graph mirrors onto the refined
 leg's (``mirrored_legs``) get its mirror image.
+
+With ``velocity`` the residual also reads the base's horizontal velocity ``v`` as the three
+stance legs' kinematics give it (:func:`stance_velocity_map`: their joint angles differenced
+over four policy steps, the feet taken as still on the floor; base frame, m/s). The policy
+observes no base velocity, and after a shove the velocity, not the tilt, says where the
+capture point went. ``v`` is linear in the observation's frames, so the graph holds it as one
+more matrix::
+
+    a = actor(x) + D @ [omega_b * s_omega, g_b[x, y], v[x, y]] + b
 """
 
 from __future__ import annotations
@@ -39,9 +48,13 @@ from policy_train.rewards import tripod_feet
 from sim.tripod_pose import capture_margins
 
 __all__ = ["BlockRNG", "RefineConfig", "ResidualActor", "paired_rollouts", "refine",
-           "refine_start", "residual_columns", "score"]
+           "refine_start", "residual_columns", "score", "stance_velocity_map"]
 
 N_IN = 5  # body rate (3) and the gravity's x, y in the base frame (2)
+N_VEL = 2  # with ``velocity``: the stance legs' base velocity x, y (m/s, base frame)
+INPUTS = ["base_ang_vel x", "base_ang_vel y", "base_ang_vel z", "projected_gravity x",
+          "projected_gravity y", "stance-leg base velocity x", "stance-leg base velocity y"]
+"""The residual's inputs, in D's column order (the JSON's ``refined_from.inputs``)."""
 
 
 @dataclass
@@ -60,7 +73,9 @@ class RefineConfig:
     each episode (the shortfall: :func:`paired_rollouts`'s ``short``). tilt_cost: the score's
     cost of the body's tilt RMS over the excitation beyond ``tilt_target_deg``, rad/s per rad
     (0: not scored): a residual that keeps the capture point in by leaning the body pays for
-    the lean (docs/policy-training.md, stop 55)."""
+    the lean (docs/policy-training.md, stop 55). velocity: the residual also reads the stance
+    legs' base velocity (two more columns of ``D``, 96 parameters instead of 72);
+    sigma_vel: their perturbation's scale, action units per m/s."""
 
     leg: str = "FL"
     pairs: int = 4
@@ -76,6 +91,8 @@ class RefineConfig:
     margin_target: float = 0.08
     tilt_cost: float = 0.0
     tilt_target_deg: float = 1.0
+    velocity: bool = False
+    sigma_vel: float = 0.1
 
     @property
     def tilt_target(self) -> float:
@@ -89,7 +106,11 @@ class RefineConfig:
         DRConfig().with_settings(self.dr)  # ValueError on an unknown field
         if self.pairs < 1 or self.episodes < 1:
             raise ValueError(f"pairs and episodes must be >= 1, got {self.pairs}, {self.episodes}")
-        for k in ("step", "sigma_rate", "sigma_tilt", "sigma_bias", "fail_cost"):
+        if not isinstance(self.velocity, bool):
+            # a bad state file's value, reported like the others (the CLI catches ValueError)
+            raise ValueError(  # noqa: TRY004
+                f"velocity must be true or false, got {self.velocity!r}")
+        for k in ("step", "sigma_rate", "sigma_tilt", "sigma_bias", "sigma_vel", "fail_cost"):
             v = getattr(self, k)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{k} must be > 0, got {v}")
@@ -99,35 +120,62 @@ class RefineConfig:
                 raise ValueError(f"{k} must be >= 0, got {v}")
 
     @property
+    def n_inputs(self) -> int:
+        """Columns of ``D``: 5, or 7 with ``velocity``."""
+        return N_IN + N_VEL * self.velocity
+
+    @property
     def scales(self) -> np.ndarray:
-        """(72,) the perturbation scale of each parameter: D's rate columns, tilt columns, b."""
+        """(72,) or (96,) the perturbation scale of each parameter (:func:`pack`'s order): D's
+        rate columns, tilt columns, b, then with ``velocity`` D's velocity columns."""
         return np.r_[np.full(36, self.sigma_rate), np.full(24, self.sigma_tilt),
-                     np.full(12, self.sigma_bias)]
+                     np.full(12, self.sigma_bias),
+                     np.full(12 * N_VEL * self.velocity, self.sigma_vel)]
 
 
 def unpack(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(72,) parameters -> D (12, 5) (rate x, y, z, then tilt x, y columns), b (12,)."""
+    """(72,) parameters -> D (12, 5) (rate x, y, z, then tilt x, y columns), b (12,); (96,)
+    -> D (12, 7), its last two the velocity's x, y columns (stored after ``b``, so that a
+    residual without them is the first 72)."""
     p = np.asarray(params, dtype=float)
-    if p.shape != (72,):
-        raise ValueError(f"a residual has 72 parameters, got {p.shape}")
-    return np.concatenate([p[:36].reshape(12, 3), p[36:60].reshape(12, 2)], 1), p[60:]
+    if p.shape not in ((72,), (96,)):
+        raise ValueError(f"a residual has 72 parameters (96 with the velocity), got {p.shape}")
+    D = np.concatenate([p[:36].reshape(12, 3), p[36:60].reshape(12, 2)]
+                       + ([p[72:].reshape(12, N_VEL)] if p.size == 96 else []), 1)
+    return D, p[60:72]
 
 
-def pack(D, b) -> np.ndarray:
-    """The inverse of :func:`unpack`: D (12, 5), b (12,) -> (72,) parameters."""
+def pack(D, b, n_inputs: int | None = None) -> np.ndarray:
+    """The inverse of :func:`unpack`: D (12, 5 or 7), b (12,) -> (72,) or (96,) parameters.
+    ``n_inputs`` 7 widens a D of 5 columns with zero velocity columns (a refinement with the
+    velocity going on from one without); 5 refuses a D of 7."""
     D, b = np.asarray(D, dtype=float), np.asarray(b, dtype=float)
-    if D.shape != (12, N_IN) or b.shape != (12,):
-        raise ValueError(f"a residual is D (12, {N_IN}) and b (12,), got {D.shape}, {b.shape}")
-    return np.r_[D[:, :3].ravel(), D[:, 3:].ravel(), b]
+    if D.ndim != 2 or D.shape[0] != 12 or D.shape[1] not in (N_IN, N_IN + N_VEL) \
+            or b.shape != (12,):
+        raise ValueError(f"a residual is D (12, {N_IN} or {N_IN + N_VEL}) and b (12,), got "
+                         f"{D.shape}, {b.shape}")
+    n = D.shape[1] if n_inputs is None else int(n_inputs)
+    if n < D.shape[1]:
+        raise ValueError("this residual reads the stance legs' velocity: refine it with "
+                         "--velocity")
+    D = np.pad(D, ((0, 0), (0, n - D.shape[1])))
+    return np.r_[D[:, :3].ravel(), D[:, 3:5].ravel(), b, D[:, 5:].ravel()]
+
+
+def _terms_at(obs_terms) -> tuple[dict[str, tuple[int, float, int]], int]:
+    """({name: (first column, scale, size)} of one frame, the frame's size), from the JSON's
+    ``observation.terms``."""
+    at, size = {}, 0
+    for t in obs_terms:
+        at[t["name"]] = (size, float(np.ravel(t.get("scale", 1.0))[0]), int(t["size"]))
+        size += int(t["size"])
+    return at, size
 
 
 def residual_columns(obs_terms) -> tuple[list[int], int, float]:
     """The newest frame's columns the residual reads (base_ang_vel, projected_gravity x, y),
     the lift command's column and its scale, from the JSON's ``observation.terms``."""
-    at, cols = {}, 0
-    for t in obs_terms:
-        at[t["name"]] = (cols, float(np.ravel(t.get("scale", 1.0))[0]))
-        cols += int(t["size"])
+    at, _ = _terms_at(obs_terms)
     for name in ("base_ang_vel", "projected_gravity", "lift_command"):
         if name not in at:
             raise ValueError(f"the observation has no {name} term")
@@ -135,44 +183,106 @@ def residual_columns(obs_terms) -> tuple[list[int], int, float]:
     return [w, w + 1, w + 2, g, g + 1], at["lift_command"][0], at["lift_command"][1]
 
 
+VEL_FRAMES = 4
+"""Policy steps over which :func:`stance_velocity_map` differences the joint angles (0.08 s at
+50 Hz): the observed joint rates carry +-1.5 rad/s of noise, the angles +-0.01 rad."""
+
+
+def stance_velocity_map(obs_terms, default_pose, leg: str, n_obs: int,
+                        dt: float) -> np.ndarray:
+    """(2, n_obs): the base's velocity x, y (m/s, base frame) from an observation row (frames
+    newest first), as the stance legs of a ``leg`` lift give it with their feet still on the
+    floor: ``v = -mean_i [J_i (q_i(t) - q_i(t - k dt)) / (k dt) + omega x p_i]`` over the three
+    other legs, ``J_i`` and ``p_i`` their feet's position Jacobian and position at
+    ``default_pose`` (12, SDK order, rad), ``k`` = :data:`VEL_FRAMES`, ``omega`` the observed
+    body rate averaged over the same frames. Linear in the row, so the graph holds it as one
+    matrix. dt: s between frames (the policy step)."""
+    from calib.joints import SDK_LEGS
+    from calib.kinematics import LegKinematics
+
+    at, size = _terms_at(obs_terms)
+    for name, n in (("joint_pos", 12), ("base_ang_vel", 3)):
+        if at.get(name, (0, 0, 0))[2] != n:
+            raise ValueError(f"the observation has no {n} {name} columns")
+    k = VEL_FRAMES
+    if n_obs < (k + 1) * size or n_obs % size:
+        raise ValueError(f"the stance legs' velocity needs {k + 1} frames of {size} "
+                         f"observations, the row has {n_obs}")
+    qc, qs, _ = at["joint_pos"]
+    wc, ws, _ = at["base_ang_vel"]
+    q0 = np.asarray(default_pose, dtype=float).reshape(4, 3)
+    M = np.zeros((2, n_obs))
+    h, feet = 1e-6, []
+    for i, g in enumerate(SDK_LEGS):
+        if g == check_leg(leg):
+            continue
+        kin = LegKinematics.from_urdf(leg=g)
+        J = np.stack([(kin.foot_position(q0[i] + h * e) - kin.foot_position(q0[i] - h * e))
+                      / (2 * h) for e in np.eye(3)], 1)  # (3, 3): d foot / d q
+        c = qc + 3 * i
+        M[:, c:c + 3] -= J[:2] / (3 * k * dt * qs)
+        M[:, k * size + c:k * size + c + 3] += J[:2] / (3 * k * dt * qs)
+        feet.append(kin.foot_position(q0[i]))
+    # -(omega x p)_xy = -[omega_y p_z - omega_z p_y, omega_z p_x - omega_x p_z], p the feet's mean
+    px, py, pz = np.mean(feet, 0)
+    wx_wy_wz = np.array([[0.0, -pz, py], [pz, 0.0, -px]])
+    for f in range(k):
+        M[:, f * size + wc:f * size + wc + 3] += wx_wy_wz / (k * ws)
+    return M
+
+
 class ResidualActor(torch.nn.Module):
-    """``mlp(x) + mask * (x[:, cols] @ D[group].T + b[group])``, mask: rows whose newest lift
-    command is ``lift_value`` (scaled). ``D`` (G, 12, 5) and ``b`` (G, 12) hold one residual
-    per group; ``group`` (rows,) picks each row's (None: group 0), so one batch can play
-    several candidates. Exported with one group."""
+    """``mlp(x) + mask * (u @ D[group].T + b[group])``, ``u`` the newest frame's rate and
+    tilt (``x[:, cols]``) and, with ``vel_map`` (2, n_obs), the stance legs' base velocity
+    ``x @ vel_map.T``; mask: rows whose newest lift command is ``lift_value``
+    (scaled). ``D`` (G, 12, 5 or 7) and ``b`` (G, 12) hold one residual per group; ``group``
+    (rows,) picks each row's (None: group 0), so one batch can play several candidates.
+    Exported with one group."""
 
     def __init__(self, mlp: torch.nn.Module, cols: list[int], lift_col: int, lift_value: float,
-                 D: np.ndarray, b: np.ndarray):
+                 D: np.ndarray, b: np.ndarray, vel_map: np.ndarray | None = None):
         super().__init__()
         self.mlp = mlp
         self.register_buffer("cols", torch.tensor(cols, dtype=torch.long))
+        self.register_buffer("vel_map", None if vel_map is None
+                             else torch.tensor(vel_map, dtype=torch.float32))
         self.lift_col, self.lift_value = int(lift_col), float(lift_value)
         self.set_residual(D, b)
         self.group: torch.Tensor | None = None
+
+    @property
+    def n_inputs(self) -> int:
+        return N_IN + (0 if self.vel_map is None else N_VEL)
 
     def set_residual(self, D: np.ndarray, b: np.ndarray) -> None:
         D, b = np.asarray(D, dtype=np.float32), np.asarray(b, dtype=np.float32)
         if D.ndim == 2:
             D, b = D[None], b[None]
+        if D.shape[-1] != self.n_inputs:
+            raise ValueError(f"this residual reads {self.n_inputs} inputs, D has {D.shape[-1]}")
         self.register_buffer("D", torch.from_numpy(D.copy()))
         self.register_buffer("b", torch.from_numpy(b.copy()))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         on = (torch.abs(x[:, self.lift_col] - self.lift_value) < 1e-3).to(x.dtype).unsqueeze(-1)
+        u = x[:, self.cols]
+        if self.vel_map is not None:
+            u = torch.cat([u, x @ self.vel_map.T], 1)
         if self.group is None:
-            r = x[:, self.cols] @ self.D[0].T + self.b[0]
+            r = u @ self.D[0].T + self.b[0]
         else:
-            r = torch.einsum("noi,ni->no", self.D[self.group], x[:, self.cols]) + self.b[self.group]
+            r = torch.einsum("noi,ni->no", self.D[self.group], u) + self.b[self.group]
         return self.mlp(x) + on * r
 
 
 def build_actor(source_onnx: str | Path, leg: str, groups: int = 1,
-                meta_json: str | Path | None = None):
+                meta_json: str | Path | None = None, velocity: bool = False):
     """(meta, actor, residual): the source policy's MLP under a zero residual of ``groups``
     candidates for lifts of ``leg``, wrapped as the source's graph mirrors its legs. meta: the
     JSON ``meta_json`` (default: the source's), whose gains and lift schedule the rollouts play
     and the refined policy keeps: the policy the user named, when that is a derived or refined
-    one whose network is ``source_onnx``."""
+    one whose network is ``source_onnx``. velocity: the residual also reads the stance legs'
+    base velocity (:func:`stance_velocity_map`)."""
     from rsl_rl.modules import MLP
 
     from policy_train.config import TrainConfig
@@ -194,8 +304,11 @@ def build_actor(source_onnx: str | Path, leg: str, groups: int = 1,
     mlp.load_state_dict(start["actor_mlp"])
     terms = meta["observation"]["terms"]
     cols, lift_col, lift_scale = residual_columns(terms)
+    vel_map = (stance_velocity_map(terms, meta["default_pose"], leg, n_in, float(meta["control_dt"]))
+               if velocity else None)
     res = ResidualActor(mlp, cols, lift_col, LIFT_VALUES[leg] * lift_scale,
-                        np.zeros((groups, 12, N_IN)), np.zeros((groups, 12)))
+                        np.zeros((groups, 12, N_IN + N_VEL * velocity)), np.zeros((groups, 12)),
+                        vel_map)
     mirrored = meta.get("mirrored_legs") or {}
     if leg in mirrored:
         raise ValueError(f"{leg}'s lifts are the mirror of {mirrored[leg]}'s: refine "
@@ -351,31 +464,35 @@ def score(row: dict, episodes: int, fail_cost: float, margin_cost: float = 0.0,
 
 @dataclass
 class RefineState:
-    """Where a refinement stands: the residual's parameters (72,) and one record per
-    generation done."""
+    """Where a refinement stands: the residual's parameters (:func:`pack`'s, 72 or 96) and one
+    record per generation done."""
 
     params: list[float] = field(default_factory=lambda: [0.0] * 72)
     history: list[dict] = field(default_factory=list)
 
 
-def refine_start(start_onnx: str | Path, leg: str) -> tuple[Path, RefineState, dict | None]:
+def refine_start(start_onnx: str | Path, leg: str,
+                 velocity: bool = False) -> tuple[Path, RefineState, dict | None]:
     """(network, state, continued): where a refinement of ``start_onnx`` begins. A plain
     exported policy is the network, under a zero residual. A refined one (its JSON's
     ``refined_from``) goes on from its residual over its source's network (the file of that
     name beside it), with its generations as the history, so that generation numbers and
     hence the seeds played go on; ``continued`` then records the policy continued, its
-    generations and settings."""
+    generations and settings. velocity: the residual is to read the stance legs' velocity too
+    (a refined residual without it goes on with those columns at zero; ValueError the other
+    way round)."""
     start_onnx = Path(start_onnx)
     rf = json.loads(start_onnx.with_suffix(".json").read_text()).get("refined_from")
     if not rf:
-        return start_onnx, RefineState(), None
+        return start_onnx, RefineState([0.0] * (72 + 12 * N_VEL * velocity)), None
     if check_leg(leg) != rf["leg"]:
         raise ValueError(f"{start_onnx.name} refines {rf['leg']}'s lifts, not {leg}'s")
     network = start_onnx.with_name(rf["policy"])
     if not network.is_file():
         raise ValueError(f"{start_onnx.name} is refined from {rf['policy']}, which is not "
                          f"beside it")
-    state = RefineState(pack(rf["D"], rf["b"]).tolist(), [dict(g) for g in rf["generations"]])
+    state = RefineState(pack(rf["D"], rf["b"], N_IN + N_VEL * velocity).tolist(),
+                        [dict(g) for g in rf["generations"]])
     continued = {"policy": start_onnx.name, "generations": len(rf["generations"]),
                  "config": rf["config"], **({"continued_from": rf["continued_from"]}
                                             if "continued_from" in rf else {})}
@@ -400,13 +517,13 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
             raise ValueError(f"{state_path} refines {saved.get('start', saved['source'])}, "
                              f"not {start}")
         cfg = RefineConfig(**saved["config"])
-        source_onnx, _, continued = refine_start(source_onnx, cfg.leg)
+        source_onnx, _, continued = refine_start(source_onnx, cfg.leg, cfg.velocity)
         state = RefineState(saved["params"], saved["history"])
     else:
-        source_onnx, state, continued = refine_start(source_onnx, cfg.leg)
+        source_onnx, state, continued = refine_start(source_onnx, cfg.leg, cfg.velocity)
     legs = _legs_of(source_onnx, cfg.leg)
     K = cfg.pairs
-    meta, actor, res = build_actor(source_onnx, cfg.leg, 2 * K + 1, named_json)
+    meta, actor, res = build_actor(source_onnx, cfg.leg, 2 * K + 1, named_json, cfg.velocity)
     theta = np.asarray(state.params, dtype=float) / cfg.scales  # in units of the perturbation
     dim = theta.size
     for _ in range(generations):
@@ -461,7 +578,7 @@ def export_refined(source_onnx, out_stem, params: np.ndarray, cfg: RefineConfig,
     from policy_train.export import git_commit, onnx_bytes
     from policy_train.stand import apply_stand
 
-    meta, actor, res = build_actor(source_onnx, cfg.leg, 1, meta_json)
+    meta, actor, res = build_actor(source_onnx, cfg.leg, 1, meta_json, cfg.velocity)
     D, b = unpack(params)
     res.set_residual(D, b)
     # the JSON's stand is kept, so its graph gets it too (derive --stand)
@@ -472,8 +589,7 @@ def export_refined(source_onnx, out_stem, params: np.ndarray, cfg: RefineConfig,
     meta["refined_from"] = {
         "policy": src.name, "commit": meta.get("commit"), "leg": cfg.leg,
         "legs": list(_legs_of(source_onnx, cfg.leg)),
-        "inputs": ["base_ang_vel x", "base_ang_vel y", "base_ang_vel z",
-                   "projected_gravity x", "projected_gravity y"],
+        "inputs": INPUTS[:D.shape[1]],
         "D": D.round(6).tolist(), "b": b.round(6).tolist(), "config": asdict(cfg),
         "generations": [{k: h[k] for k in ("generation", "seed", "score", "score_best",
                                            "score_mean")} for h in history],

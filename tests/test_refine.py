@@ -231,3 +231,81 @@ def test_refining_a_policy_with_a_stand_keeps_it_in_its_graph(tmp_path):
     x[:, 48] = 0.0  # lift command none (its scale 0.25: 0.25 per leg)
     y = ort.InferenceSession(str(json_path.with_suffix(".onnx"))).run(None, {"obs": x})[0]
     assert np.allclose(y, -0.2 * x[:, 9:21], atol=1e-6)
+
+
+def test_stance_velocity_map_reads_the_base_velocity_from_the_stance_legs():
+    """Feet still on the floor: a base moved by d over VEL_FRAMES steps bends each stance leg
+    by -J^-1 d, and the map reads d / (k dt) from the joint angles; a body turning at omega
+    about the feet reads -(omega x p); the lifted leg's joints and other columns do not count."""
+    from calib.joints import SDK_LEGS
+    from calib.kinematics import LegKinematics
+    from policy_train.refine import VEL_FRAMES, stance_velocity_map
+
+    meta = json.loads(V21.with_suffix(".json").read_text())
+    terms, q0 = meta["observation"]["terms"], np.asarray(meta["default_pose"]).reshape(4, 3)
+    M = stance_velocity_map(terms, meta["default_pose"], "FL", 490, 0.02)
+    assert M.shape == (2, 490)
+    v = np.array([0.3, -0.2])
+    x = np.zeros(490)
+    for i, g in enumerate(SDK_LEGS):
+        kin, h = LegKinematics.from_urdf(leg=g), 1e-6
+        J = np.stack([(kin.foot_position(q0[i] + h * e) - kin.foot_position(q0[i] - h * e))
+                      / (2 * h) for e in np.eye(3)], 1)
+        # the foot still in the world: the base moved by d, the foot by -d in the base frame
+        dq = np.linalg.solve(J, -np.r_[v * VEL_FRAMES * 0.02, 0.0]) if g != "FL" \
+            else np.array([0.5, -0.4, 0.3])
+        x[9 + 3 * i:12 + 3 * i] = dq  # the newest frame; the frame k steps ago at q0 (0 here)
+    np.testing.assert_allclose(M @ x, v, rtol=1e-6)
+    w = np.zeros(490)
+    w[3:3 + 49 * VEL_FRAMES:49] = 0.1 * 0.25  # roll 0.1 rad/s in the rate's scaled units
+    feet = np.mean([LegKinematics.from_urdf(leg=g).foot_position(q0[i])
+                    for i, g in enumerate(SDK_LEGS) if g != "FL"], 0)
+    np.testing.assert_allclose(M @ w, -np.cross([0.1, 0, 0], feet)[:2], atol=1e-12)
+    with pytest.raises(ValueError, match="frames"):
+        stance_velocity_map(terms, meta["default_pose"], "FL", 49 * VEL_FRAMES, 0.02)
+
+
+def test_a_velocity_residual_goes_on_from_one_without(tmp_path):
+    """--velocity on v22 (a residual on rate and tilt): its 72 numbers go on, the two velocity
+    columns start at zero; the export reads u = [rate, tilt, x @ M.T] in its graph, and a
+    refinement without --velocity refuses to go on from it."""
+    import shutil
+
+    from policy_train.refine import stance_velocity_map
+    from policy_train.symmetry import ActionMirror, Mirror, policy_terms
+
+    cfg = RefineConfig(pairs=1, episodes=1, velocity=True)
+    assert cfg.n_inputs == 7 and cfg.scales.shape == (96,)
+    state, lines = tmp_path / "s.json", []
+    onnx_path, json_path = refine(V22, tmp_path / "r", 1, cfg, state, log=lines.append)
+    saved = json.loads(state.read_text())
+    rf22 = json.loads(V22.with_suffix(".json").read_text())["refined_from"]
+    moved = (np.asarray(saved["params"]) - pack(rf22["D"], rf22["b"], 7)) / cfg.scales
+    np.testing.assert_allclose(np.linalg.norm(moved), cfg.step * np.sqrt(96), rtol=1e-5)
+    meta = json.loads(json_path.read_text())
+    rf = meta["refined_from"]
+    assert np.shape(rf["D"]) == (12, 7) and len(rf["inputs"]) == 7 and rf["config"]["velocity"]
+    D, b = unpack(saved["params"])
+    M = stance_velocity_map(meta["observation"]["terms"], meta["default_pose"], "FL", 490, 0.02)
+    x = np.random.default_rng(4).normal(0, 0.3, (3, 490)).astype(np.float32)
+    x[:, 48::49] = 0.25
+    u = np.c_[x[:, [3, 4, 5, 6, 7]], x @ M.T]
+    got = ort.InferenceSession(str(onnx_path)).run(None, {"obs": x})[0]
+    src = ort.InferenceSession(str(V21)).run(None, {"obs": x})[0]
+    np.testing.assert_allclose(got, src + u @ D.T + b, atol=1e-4)
+    # FR's lifts, mirrored onto FL's: the velocity read from the mirrored frames, mirrored back
+    x[:, 48::49] = 0.5
+    terms, scale = policy_terms(meta["observation"]["terms"])
+    xm = Mirror(terms, scale, 10)(torch.from_numpy(x)).numpy()
+    um = np.c_[xm[:, [3, 4, 5, 6, 7]], xm @ M.T]
+    want = (ort.InferenceSession(str(V21)).run(None, {"obs": x})[0]
+            + ActionMirror()(torch.from_numpy(um @ D.T + b)).numpy())
+    np.testing.assert_allclose(ort.InferenceSession(str(onnx_path)).run(None, {"obs": x})[0],
+                               want, atol=1e-4)
+    for f in (V21, V21.with_suffix(".json")):  # a refinement goes on over its network, beside it
+        shutil.copy(f, tmp_path / f.name)
+    with pytest.raises(ValueError, match="--velocity"):
+        refine(onnx_path, tmp_path / "q", 1, RefineConfig(pairs=1, episodes=1),
+               tmp_path / "q.json")
+    with pytest.raises(ValueError, match="velocity must be"):
+        RefineConfig(velocity="yes")
