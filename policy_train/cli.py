@@ -764,7 +764,7 @@ def main(argv: list[str] | None = None) -> int:
                    default=1.0, help="deg of tilt RMS the score lets pass (default 1)")
     r.add_argument("--velocity", action="store_true",
                    help="the residual also reads the base's horizontal velocity from the stance "
-                   "legs' joint rates (96 parameters instead of 72)")
+                   "legs' joint angles over four policy steps (96 parameters instead of 72)")
     r.add_argument("--dr", type=_dr_setting, action="append", default=[], metavar="FIELD=VALUE",
                    help="a DRConfig field over the standard ranges for the episodes played "
                    "(repeatable), e.g. --dr push_vel=0.5 for harder shoves")
