@@ -95,6 +95,10 @@ class DRConfig:
     # not (1, 1), so that configurations without it keep their draws): a distilled student
     # also sees quiet sensors (docs/policy-training.md, v8)
     noise_scale: tuple[float, float] = (1.0, 1.0)
+    # deg: the floor's tilt, drawn per episode, downhill any way; trained as gravity turned
+    # away from the floor's normal by as much (the same physics on an infinite plane). Drawn
+    # only when on: configurations without it keep their draws (the transfer check's `slope`)
+    floor_tilt_deg: tuple[float, float] = (0.0, 0.0)
 
     def with_settings(self, settings: dict) -> DRConfig:
         """A copy with the named fields set (``a2i-train tripod / distill / eval --dr``; lists,

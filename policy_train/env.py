@@ -42,7 +42,6 @@ from deploy.observation import (
     ObservationHistory,
     build_observation,
     default_terms,
-    projected_gravity,
 )
 from deploy.tracking_adapter import TrackingAdapter
 from policy_train.config import OBS_NOISE, EnvConfig
@@ -246,6 +245,8 @@ class TripodEnv:
         self._ipos_nominal = m.body_ipos.copy()
         self._fric = b.expand("geom_friction")
         self._joint_fric = b.expand("dof_frictionloss")
+        self._g = float(np.linalg.norm(m.opt.gravity))
+        self._gravity = None  # opt.gravity per env, expanded at the first tilted floor drawn
         self._feet_geoms = np.array([m.geom(f"{leg}_foot").id for leg in MODEL_LEGS] + [m.geom("floor").id])
         # level tripod stances in static equilibrium, one per lifted leg (reference starts)
         self.ref_poses = [tripod_pose(
@@ -300,6 +301,9 @@ class TripodEnv:
         self.latency = np.zeros(N, dtype=int)
         self.noise_scale = np.ones(N)      # times the observation noise (DRConfig.noise_scale)
         self.friction = np.ones(N)
+        # unit vector of gravity in the world (the floor is z = 0): straight down unless the
+        # floor is drawn tilted (DRConfig.floor_tilt_deg)
+        self.down = np.tile([0.0, 0.0, -1.0], (N, 1))
         self.mass_add = z(N)
         self.foot_touch = np.zeros((N, 4), dtype=bool)
         self.other_touch = np.zeros(N, dtype=bool)
@@ -384,6 +388,14 @@ class TripodEnv:
                 self._joint_fric[ids, 6:] = rng.uniform(*dr.joint_friction, (n, 12))
             if tuple(dr.noise_scale) != (1.0, 1.0):  # likewise
                 self.noise_scale[ids] = rng.uniform(*dr.noise_scale, n)
+            if dr.floor_tilt_deg[1] > 0:  # likewise
+                a = np.radians(rng.uniform(*dr.floor_tilt_deg, n))
+                az = rng.uniform(-np.pi, np.pi, n)
+                self.down[ids] = np.stack([np.sin(a) * np.cos(az), np.sin(a) * np.sin(az),
+                                           -np.cos(a)], 1)
+                if self._gravity is None:
+                    self._gravity = self.batch.expand("opt.gravity")
+                self._gravity[ids] = self._g * self.down[ids]
         else:
             self.kp_s[ids] = self.kd_s[ids] = self.strength[ids] = 1.0
             self.latency[ids] = 0
@@ -713,14 +725,22 @@ class TripodEnv:
         qp, qv = self.qpos, self.qvel
         self.quat = qp[:, 3:7]
         self.base_pos = qp[:, 0:3]
-        self.com_xy = self.subtree_com[:, self.tm.base_body, :2].copy()  # world m
+        self.com_xy = self.com_over_floor()[:, :2]  # world m
         self.lin_vel_b = _quat_rotate_inv(self.quat, qv[:, 0:3])
         self.ang_vel_b = qv[:, 3:6].copy()
-        self.gravity_b = projected_gravity(self.quat)
+        self.gravity_b = _quat_rotate_inv(self.quat, self.down)
         # rad from the vertical: what falls end on, and the evaluation's and refine's tilt
         self.tilt = np.arccos(np.clip(-self.gravity_b[:, 2], -1.0, 1.0))
         self.q = qp[:, 7:19]
         self.dq = qv[:, 6:18]
+
+    def com_over_floor(self) -> np.ndarray:
+        """(N, 3) world m: the whole robot's centre of mass with x, y moved to where gravity
+        carries it onto the floor (z = 0); a tilted floor (``DRConfig.floor_tilt_deg``, trained
+        as turned gravity) moves it downhill by its height times the tilt's tangent."""
+        com = self.subtree_com[:, self.tm.base_body].copy()
+        com[:, :2] += com[:, 2:3] * self.down[:, :2] / -self.down[:, 2:3]
+        return com
 
     def lift_command_value(self) -> np.ndarray:
         return np.where(self.lift_leg >= 0, self.lift_leg + 1, 0).astype(float)
@@ -754,7 +774,8 @@ class TripodEnv:
         """(len(ids), 49) noise-free policy frame of the physics state as it is now, which
         may be part-way through a policy step (:meth:`step` fills ``actuation_frames`` so)."""
         qp, qv = self.qpos[ids], self.qvel[ids]
-        s = {"base_ang_vel": qv[:, 3:6], "projected_gravity": projected_gravity(qp[:, 3:7]),
+        s = {"base_ang_vel": qv[:, 3:6], "projected_gravity": _quat_rotate_inv(qp[:, 3:7],
+                                                                              self.down[ids]),
              "joint_pos": qp[:, 7:19], "joint_vel": qv[:, 6:18]}
         sig = self._signals(_quat_rotate_inv(qp[:, 3:7], qv[:, 0:3]), s, previous_actions, ids)
         return build_observation(self.obs_terms, sig, clip=self.cfg.obs_clip)

@@ -30,6 +30,7 @@ from calib.atomic import write_text_atomic
 from calib.excitation import base_to_foot, covariance_kappa, foot_omega
 from calib.joints import MODEL_LEGS, model_to_sdk, sdk_to_model
 from deploy.lift_schedule import PHASES, LiftSchedule
+from deploy.observation import projected_gravity
 from policy_train.config import RANDOMISATIONS, DRConfig, TrainConfig
 from policy_train.env import PlanPool, TripodEnv
 
@@ -183,7 +184,8 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
         exc = alive & (env.phase == 3)
         if exc.any():
             foot_z = env.sensordata[:, env.tm.foot_pos + 2]
-            low = env.tm.calf_low_z(env.gravity_b[exc], env.q[exc], foot_z[exc])
+            # heights over the floor: its normal, which gravity leaves on a tilted floor
+            low = env.tm.calf_low_z(projected_gravity(env.quat[exc]), env.q[exc], foot_z[exc])
             calf_min[exc] = np.minimum(calf_min[exc], np.where(stance[exc], low, np.inf).min(1))
             pinned = np.isclose(env.target[exc][:, _CALVES], env.soft_hi[_CALVES]) & stance[exc]
             on_clamp[exc] += pinned.sum(1) / 3.0

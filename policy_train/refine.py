@@ -398,8 +398,8 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
     failed = np.zeros(N, dtype=bool)
     rate2, tilt2, err2, nexc = np.zeros(N), np.zeros(N), np.zeros(N), np.zeros(N)
     cp_min = np.full(N, np.inf)
-    base, tm = env.tm.base_body, env.tm
-    com_prev = env.subtree_com[:, base].copy()
+    tm = env.tm
+    com_prev = env.com_over_floor()
     obs = env.observations()["policy"]
     try:
         with torch.no_grad():
@@ -413,7 +413,7 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
                 tilt2[exc] += env.tilt[exc] ** 2
                 err2[exc] += np.nanmean(env.lift_err[exc] ** 2, 1)
                 nexc[exc] += 1
-                com = env.subtree_com[:, base].copy()
+                com = env.com_over_floor()
                 up = alive & ((env.phase == 2) | (env.phase == 3)) & (env.lift_leg >= 0)
                 if up.any():
                     feet = tripod_feet(env.sensordata[:, tm.foot_pos[:, None] + np.arange(3)][up],

@@ -362,6 +362,51 @@ def test_joint_friction_is_drawn_per_joint_only_when_on(env):
     np.testing.assert_array_equal(on.batch.expanded("dof_frictionloss")[1:], fl[1:])
 
 
+def test_floor_tilt_turns_gravity_and_is_drawn_only_when_on(env):
+    """DRConfig.floor_tilt_deg: gravity turned from the floor's normal by the drawn angle, in
+    the physics (the centre of mass falls along it), in the projected gravity the policy
+    observes and in the tilt; off by default, with the model's gravity untouched."""
+    assert np.all(env.down == [0.0, 0.0, -1.0])
+    assert env.batch.expanded("opt.gravity") is None  # the model's own gravity, shared
+    cfg = EnvConfig(num_envs=3, plans_per_leg=1, seed=7, threads=1)
+    cfg.dr.floor_tilt_deg = (10.0, 10.0)
+    e = TripodEnv(cfg)
+    np.testing.assert_allclose(np.degrees(np.arccos(-e.down[:, 2])), 10.0)
+    assert np.ptp(np.arctan2(e.down[:, 1], e.down[:, 0])) > 0.1  # downhill any way
+    np.testing.assert_allclose(e.batch.expanded("opt.gravity"), 9.81 * e.down)
+    tilt = np.degrees(e.tilt)
+    assert np.all(np.abs(tilt - 10.0) < 3.0), tilt  # a body level on the floor leans with it
+    expect = np.array([_rot(q).T @ d for q, d in zip(e.qpos[:, 3:7], e.down)])
+    np.testing.assert_allclose(e.gravity_b, expect, atol=1e-9)
+    # the centre of mass over the floor (the support reward's, refine's capture point) is
+    # where gravity carries it: downhill by its height times tan 10 deg
+    com = e.subtree_com[:, e.tm.base_body]
+    shift = e.com_over_floor()[:, :2] - com[:, :2]
+    np.testing.assert_allclose(shift, com[:, 2:3] * np.tan(np.radians(10.0)) * e.down[:, :2]
+                               / np.linalg.norm(e.down[:, :2], axis=1, keepdims=True))
+    np.testing.assert_array_equal(e.com_xy, e.com_over_floor()[:, :2])
+    np.testing.assert_array_equal(env.com_over_floor(), env.subtree_com[:, env.tm.base_body])
+    # in the air the centre of mass falls along the drawn gravity, whatever the legs do
+    e.qpos[:, 2] += 1.0
+    e.qvel[:] = 0.0
+    e.batch.forward()
+    base = e.tm.base_body
+    com = [e.subtree_com[:, base].copy()]
+    for _ in range(2):
+        e.step(np.zeros((3, 12)))
+        com.append(e.subtree_com[:, base].copy())
+    accel = (com[2] - 2 * com[1] + com[0]) / e.dt**2
+    np.testing.assert_allclose(accel, 9.81 * e.down, atol=0.05)
+
+
+def _rot(q: np.ndarray) -> np.ndarray:
+    """3x3 rotation (body to world) of the unit quaternion q, wxyz."""
+    w, x, y, z = q
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
 def test_fall_terminates():
     e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=5, threads=1))
     e.qpos[0, 2] = 0.08  # base dropped to the floor
@@ -455,7 +500,7 @@ def test_calf_low_point_is_the_lowest_vertex_of_the_calf_geoms(env):
     import mujoco
 
     from calib.joints import MODEL_LEGS
-    from policy_train.env import projected_gravity
+    from deploy.observation import projected_gravity
 
     m = env.tm.model
     d = mujoco.MjData(m)
