@@ -42,6 +42,7 @@ from deploy.observation import (
     ObservationHistory,
     build_observation,
     default_terms,
+    projected_gravity,
 )
 from deploy.tracking_adapter import TrackingAdapter
 from policy_train.config import OBS_NOISE, EnvConfig
@@ -728,11 +729,19 @@ class TripodEnv:
         self.com_xy = self.com_over_floor()[:, :2]  # world m
         self.lin_vel_b = _quat_rotate_inv(self.quat, qv[:, 0:3])
         self.ang_vel_b = qv[:, 3:6].copy()
-        self.gravity_b = _quat_rotate_inv(self.quat, self.down)
+        self.gravity_b = self._gravity_in_base(self.quat, slice(None))
         # rad from the vertical: what falls end on, and the evaluation's and refine's tilt
         self.tilt = np.arccos(np.clip(-self.gravity_b[:, 2], -1.0, 1.0))
         self.q = qp[:, 7:19]
         self.dq = qv[:, 6:18]
+
+    def _gravity_in_base(self, quat: np.ndarray, ids) -> np.ndarray:
+        """(n, 3) unit gravity in the base frames of the envs ``ids`` at orientations ``quat``
+        (n, 4) wxyz. On a level floor deploy's own function, digit for digit, so that the
+        committed evaluations keep their figures."""
+        if self._gravity is None:
+            return projected_gravity(quat)
+        return _quat_rotate_inv(quat, self.down[ids])
 
     def com_over_floor(self) -> np.ndarray:
         """(N, 3) world m: the whole robot's centre of mass with x, y moved to where gravity
@@ -774,8 +783,7 @@ class TripodEnv:
         """(len(ids), 49) noise-free policy frame of the physics state as it is now, which
         may be part-way through a policy step (:meth:`step` fills ``actuation_frames`` so)."""
         qp, qv = self.qpos[ids], self.qvel[ids]
-        s = {"base_ang_vel": qv[:, 3:6], "projected_gravity": _quat_rotate_inv(qp[:, 3:7],
-                                                                              self.down[ids]),
+        s = {"base_ang_vel": qv[:, 3:6], "projected_gravity": self._gravity_in_base(qp[:, 3:7], ids),
              "joint_pos": qp[:, 7:19], "joint_vel": qv[:, 6:18]}
         sig = self._signals(_quat_rotate_inv(qp[:, 3:7], qv[:, 0:3]), s, previous_actions, ids)
         return build_observation(self.obs_terms, sig, clip=self.cfg.obs_clip)

@@ -368,6 +368,9 @@ def test_floor_tilt_turns_gravity_and_is_drawn_only_when_on(env):
     observes and in the tilt; off by default, with the model's gravity untouched."""
     assert np.all(env.down == [0.0, 0.0, -1.0])
     assert env.batch.expanded("opt.gravity") is None  # the model's own gravity, shared
+    # and deploy's projected gravity to the last digit: committed evaluations keep their figures
+    from deploy.observation import projected_gravity
+    np.testing.assert_array_equal(env.gravity_b, projected_gravity(env.quat))
     cfg = EnvConfig(num_envs=3, plans_per_leg=1, seed=7, threads=1)
     cfg.dr.floor_tilt_deg = (10.0, 10.0)
     e = TripodEnv(cfg)
