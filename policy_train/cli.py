@@ -527,6 +527,8 @@ def _dr_setting(text: str) -> tuple[str, object]:
         raise argparse.ArgumentTypeError(
             f"{text!r}: {field} takes {n} {kind.__name__} value(s)"
             + (" LO,HI with LO <= HI" if n == 2 else "") + f", e.g. {default}")
+    if field == "floor_tilt_deg" and parts[1] >= 30.0:  # a Go2 tripod slides well before
+        raise argparse.ArgumentTypeError(f"{text!r}: floor_tilt_deg must stay under 30 deg")
     return field, parts if isinstance(default, tuple) else parts[0]
 
 

@@ -197,6 +197,13 @@ def test_dr_settings_apply_over_the_randomisation_and_write_nothing(exported, tm
     assert dr.motor_strength == (0.7, 0.8) and dr.push_vel == 0.0 and dr.friction == (0.4, 1.25)
     with pytest.raises(ValueError, match="unknown randomisation field"):
         DRConfig().with_settings({"wind": 1.0})
+    import argparse
+
+    from policy_train.cli import _dr_setting
+    assert _dr_setting("floor_tilt_deg=0,5") == ("floor_tilt_deg", (0.0, 5.0))
+    for bad in ("floor_tilt_deg=0,45", "floor_tilt_deg=5,2", "floor_tilt_deg=3"):
+        with pytest.raises(argparse.ArgumentTypeError, match="floor_tilt_deg"):
+            _dr_setting(bad)
     meta = json.loads((d / "pol.json").read_text())
     env, _ = evaluation_env(meta, ("FL",), 8, seed=1, dr_set={"motor_strength": (0.7, 0.8)})
     assert np.all((env.strength >= 0.7) & (env.strength <= 0.8))
