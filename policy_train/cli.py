@@ -25,6 +25,7 @@
   a2i-train refine policies/NAME.onnx --out policies/OTHER [--generations 40] [--leg FL]
                    [--pairs 4] [--episodes 24] [--fail-cost 0.1] [--dr FIELD=VALUE ...]
                    [--margin-cost C] [--margin-target 0.08] [--tilt-cost C] [--tilt-target 1]
+                   [--clearance-cost C] [--clearance-target 0.008] [--velocity]
                    [--seed 1000] [--state F] [--resume]
                                    (a linear residual on the body's rate and tilt, by ES;
                                     of a refined policy: goes on from its residual)
@@ -233,7 +234,8 @@ def _refine(a) -> int:
                        fail_cost=a.fail_cost, seed=a.seed, dr=dict(a.dr),
                        margin_cost=a.margin_cost, margin_target=a.margin_target,
                        tilt_cost=a.tilt_cost, tilt_target_deg=a.tilt_target,
-                       velocity=a.velocity)
+                       velocity=a.velocity, clearance_cost=a.clearance_cost,
+                       clearance_target=a.clearance_target)
     print(f"refine: {a.onnx}, {a.generations} generations of {2 * cfg.pairs + 1} candidates x "
           f"{cfg.episodes} episodes per leg, state {state}", flush=True)
     onnx_path, json_path = refine(a.onnx, a.out, a.generations, cfg, state, resume=a.resume_state,
@@ -764,6 +766,15 @@ def main(argv: list[str] | None = None) -> int:
                    "--tilt-target, rad/s per rad (default 0: not scored)")
     r.add_argument("--tilt-target", type=_number(0.0, 30.0, "must be in [0, 30) deg"),
                    default=1.0, help="deg of tilt RMS the score lets pass (default 1)")
+    r.add_argument("--clearance-cost", type=_number(0.0, 1000.0, "must be in [0, 1000)"),
+                   default=0.0,
+                   help="the score's cost of the stance calves' shortfall below "
+                   "--clearance-target over the floor in the excitation, rad/s per metre "
+                   "(default 0: not scored)")
+    r.add_argument("--clearance-target", type=_number(0.0, 0.05, "must be in [0, 0.05) m"),
+                   default=0.008,
+                   help="m over the floor the stance calves' lowest point should keep "
+                   "(default 0.008)")
     r.add_argument("--velocity", action="store_true",
                    help="the residual also reads the base's horizontal velocity from the stance "
                    "legs' joint angles over four policy steps (96 parameters instead of 72)")

@@ -751,6 +751,18 @@ class TripodEnv:
         com[:, :2] += com[:, 2:3] * self.down[:, :2] / -self.down[:, 2:3]
         return com
 
+    def stance_calf_clearance(self, ids) -> np.ndarray:
+        """(n,) m: how high the lowest point of the stance calves' collision hulls is over the
+        floor, for the envs ``ids`` (a mask or indices): the legs but the lifted one (all four
+        while none is). Measured along the floor's normal, world z, which a tilted floor
+        (turned gravity) leaves where it is (:meth:`TrainModel.calf_low_z`)."""
+        foot_z = self.sensordata[ids][:, self.tm.foot_pos + 2]
+        low = self.tm.calf_low_z(projected_gravity(self.quat[ids]), self.q[ids], foot_z)
+        lifted = self.lift_leg[ids]
+        up = np.flatnonzero(lifted >= 0)
+        low[up, lifted[up]] = np.inf
+        return low.min(1)
+
     def lift_command_value(self) -> np.ndarray:
         return np.where(self.lift_leg >= 0, self.lift_leg + 1, 0).astype(float)
 

@@ -30,7 +30,6 @@ from calib.atomic import write_text_atomic
 from calib.excitation import base_to_foot, covariance_kappa, foot_omega
 from calib.joints import MODEL_LEGS, model_to_sdk, sdk_to_model
 from deploy.lift_schedule import PHASES, LiftSchedule
-from deploy.observation import projected_gravity
 from policy_train.config import RANDOMISATIONS, DRConfig, TrainConfig
 from policy_train.env import PlanPool, TripodEnv
 
@@ -183,10 +182,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
             cause_phase[i] = PHASES[min(phase[i], len(PHASES) - 1)]
         exc = alive & (env.phase == 3)
         if exc.any():
-            foot_z = env.sensordata[:, env.tm.foot_pos + 2]
-            # heights over the floor: its normal, which gravity leaves on a tilted floor
-            low = env.tm.calf_low_z(projected_gravity(env.quat[exc]), env.q[exc], foot_z[exc])
-            calf_min[exc] = np.minimum(calf_min[exc], np.where(stance[exc], low, np.inf).min(1))
+            calf_min[exc] = np.minimum(calf_min[exc], env.stance_calf_clearance(exc))
             pinned = np.isclose(env.target[exc][:, _CALVES], env.soft_hi[_CALVES]) & stance[exc]
             on_clamp[exc] += pinned.sum(1) / 3.0
             tilt2[exc] += env.tilt[exc] ** 2

@@ -75,7 +75,12 @@ class RefineConfig:
     (0: not scored): a residual that keeps the capture point in by leaning the body pays for
     the lean (docs/policy-training.md, stop 55). velocity: the residual also reads the stance
     legs' base velocity (two more columns of ``D``, 96 parameters instead of 72);
-    sigma_vel: their perturbation's scale, action units per m/s."""
+    sigma_vel: their perturbation's scale, action units per m/s. clearance_cost: the score's
+    cost of the stance calves' shortfall, rad/s per metre (0: not scored); clearance_target:
+    m, how high over the floor the stance calves' lowest point should stay at its lowest in
+    each episode's excitation (the shortfall: :func:`paired_rollouts`'s ``calf_short``): the
+    residual that holds harder shoves crouches the stance legs, and a weak motor or a tilted
+    floor then puts a calf on the floor (docs/policy-training.md, stop 58)."""
 
     leg: str = "FL"
     pairs: int = 4
@@ -93,6 +98,8 @@ class RefineConfig:
     tilt_target_deg: float = 1.0
     velocity: bool = False
     sigma_vel: float = 0.1
+    clearance_cost: float = 0.0
+    clearance_target: float = 0.008
 
     @property
     def tilt_target(self) -> float:
@@ -114,7 +121,8 @@ class RefineConfig:
             v = getattr(self, k)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"{k} must be > 0, got {v}")
-        for k in ("margin_cost", "margin_target", "tilt_cost", "tilt_target_deg"):
+        for k in ("margin_cost", "margin_target", "tilt_cost", "tilt_target_deg",
+                  "clearance_cost", "clearance_target"):
             v = getattr(self, k)
             if not (np.isfinite(v) and v >= 0):
                 raise ValueError(f"{k} must be >= 0, got {v}")
@@ -364,7 +372,7 @@ class BlockRNG:
 
 def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, candidates,
                     legs, episodes: int, seed: int, dr_set: dict | None = None,
-                    margin_target: float = 0.08) -> list[dict]:
+                    margin_target: float = 0.08, clearance_target: float = 0.008) -> list[dict]:
     """Each candidate (D, b) over the same ``episodes`` per leg of ``legs`` (the evaluation's
     environment, :func:`policy_train.evaluate.evaluation_env`, with seed ``seed`` and
     ``dr_set``'s fields over its standard ranges), one batch. Per candidate and leg: ``rate``
@@ -376,8 +384,12 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
     :func:`sim.tripod_pose.capture_margins` of the whole robot's centre of mass, its velocity
     from its change over a policy step) and ``short`` (m: the mean over those episodes of how
     far that lowest margin falls short of ``margin_target``, at most twice that: where a
-    fall starts, it is below 0). A fallen env is reset with new draws; its push timer is kept
-    with its twins' so the blocks' pushes stay common."""
+    fall starts, it is below 0); ``calf_min`` (m: the median over the episodes of each one's
+    lowest stance-calf point over the floor in the excitation,
+    :meth:`TripodEnv.stance_calf_clearance`, as the evaluation's ``calf_clearance_mm``) and
+    ``calf_short`` (m: the mean over those episodes of how far it falls short of
+    ``clearance_target``, at most twice that). A fallen env is reset with new draws; its push
+    timer is kept with its twins' so the blocks' pushes stay common."""
     from policy_train.evaluate import evaluation_env
 
     C = len(candidates)
@@ -398,6 +410,7 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
     failed = np.zeros(N, dtype=bool)
     rate2, tilt2, err2, nexc = np.zeros(N), np.zeros(N), np.zeros(N), np.zeros(N)
     cp_min = np.full(N, np.inf)
+    calf_min = np.full(N, np.inf)
     tm = env.tm
     com_prev = env.com_over_floor()
     obs = env.observations()["policy"]
@@ -413,6 +426,8 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
                 tilt2[exc] += env.tilt[exc] ** 2
                 err2[exc] += np.nanmean(env.lift_err[exc] ** 2, 1)
                 nexc[exc] += 1
+                if exc.any():
+                    calf_min[exc] = np.minimum(calf_min[exc], env.stance_calf_clearance(exc))
                 com = env.com_over_floor()
                 up = alive & ((env.phase == 2) | (env.phase == 3)) & (env.lift_leg >= 0)
                 if up.any():
@@ -446,19 +461,28 @@ def paired_rollouts(meta: dict, actor: torch.nn.Module, res: ResidualActor, cand
                                                        2 * margin_target)))
                                  if lows.size else float("inf"))
             row[leg]["cp_min"] = float(np.median(lows)) if lows.size else float("nan")
+            calf = calf_min[sl][sel & np.isfinite(calf_min[sl])]
+            # a calf on the floor ends the episode's success; fail_cost prices that
+            row[leg]["calf_short"] = (float(np.mean(np.clip(clearance_target - calf, 0.0,
+                                                            2 * clearance_target)))
+                                      if calf.size else float("inf"))
+            row[leg]["calf_min"] = float(np.median(calf)) if calf.size else float("nan")
         out.append(row)
     return out
 
 
 def score(row: dict, episodes: int, fail_cost: float, margin_cost: float = 0.0,
-          tilt_cost: float = 0.0, tilt_target: float = 0.0) -> float:
+          tilt_cost: float = 0.0, tilt_target: float = 0.0,
+          clearance_cost: float = 0.0) -> float:
     """Sum over the legs of the body-rate RMS (rad/s), ``fail_cost`` times the failed
-    fraction, ``margin_cost`` times the capture point's shortfall (m) and ``tilt_cost`` times
-    the tilt RMS beyond ``tilt_target`` (rad); a cost of 0 does not read its figure. Lower is
-    better (inf where a leg never reached its excitation)."""
+    fraction, ``margin_cost`` times the capture point's shortfall (m), ``tilt_cost`` times
+    the tilt RMS beyond ``tilt_target`` (rad) and ``clearance_cost`` times the stance calves'
+    shortfall (m); a cost of 0 does not read its figure. Lower is better (inf where a leg
+    never reached its excitation)."""
     return float(sum(v["rate"] + fail_cost * v["fails"] / episodes
                      + (margin_cost * v["short"] if margin_cost else 0.0)
                      + (tilt_cost * max(v["tilt"] - tilt_target, 0.0) if tilt_cost else 0.0)
+                     + (clearance_cost * v["calf_short"] if clearance_cost else 0.0)
                      for v in row.values()))
 
 
@@ -532,9 +556,10 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
         eps = np.random.default_rng([cfg.seed, gen]).normal(size=(K, dim))
         cands = [theta] + [theta + e for e in eps] + [theta - e for e in eps]
         rows = paired_rollouts(meta, actor, res, [unpack(c * cfg.scales) for c in cands], legs,
-                               cfg.episodes, cfg.seed + gen, cfg.dr, cfg.margin_target)
+                               cfg.episodes, cfg.seed + gen, cfg.dr, cfg.margin_target,
+                               cfg.clearance_target)
         J = np.array([score(r, cfg.episodes, cfg.fail_cost, cfg.margin_cost, cfg.tilt_cost,
-                            cfg.tilt_target) for r in rows])
+                            cfg.tilt_target, cfg.clearance_cost) for r in rows])
         diff = np.nan_to_num(J[1:K + 1] - J[K + 1:], posinf=1.0, neginf=-1.0) / 2
         grad = diff @ eps / K
         norm = np.linalg.norm(grad)
@@ -552,7 +577,8 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
             + ", ".join(f"{g} {v['rate']:.3f} rad/s, tilt {np.degrees(v['tilt']):.2f} deg, "
                         f"{v['fails']} failed, capture point "
                         f"{100 * v['short']:.2f} cm short of {100 * cfg.margin_target:.0f} "
-                        f"(lowest {100 * v['cp_min']:.1f} cm)"
+                        f"(lowest {100 * v['cp_min']:.1f} cm), stance calves "
+                        f"{1e3 * v['calf_min']:.1f} mm up"
                         for g, v in rows[0].items())
             + f"; |residual| {np.linalg.norm(theta):.2f} sigma, {rec['wall_s']:.0f} s")
     return export_refined(source_onnx, out_stem, np.asarray(state.params), cfg, state.history,

@@ -111,6 +111,17 @@ def test_candidates_play_the_same_episodes():
         score(rows[0], 2, 0.1) + 3.0 * fl["tilt"])
     assert score(rows[0], 2, 0.1, 0.0, 3.0, fl["tilt"] + 1e-3) == score(rows[0], 2, 0.1)
     assert rows[1]["FL"]["tilt"] != fl["tilt"]
+    # the stance calves' lowest point over the floor in the excitation: millimetres up (the
+    # hulls wrap the top of the foot), the evaluation's calf_clearance_mm; the shortfall below
+    # 8 mm a mean over the episodes, priced like the capture point's
+    assert 0.001 < fl["calf_min"] < 0.03
+    assert max(0.008 - fl["calf_min"], 0.0) - 1e-12 <= fl["calf_short"] <= 0.016
+    assert score(rows[0], 2, 0.1, clearance_cost=20.0) == pytest.approx(
+        score(rows[0], 2, 0.1) + 20.0 * fl["calf_short"])
+    high = paired_rollouts(meta, actor, res, [zero], ("FL",), 2, seed=5,
+                           clearance_target=0.03)[0]["FL"]
+    assert high["calf_min"] == pytest.approx(fl["calf_min"], rel=1e-2)
+    assert high["calf_short"] == pytest.approx(0.03 - fl["calf_min"], abs=5e-3)
     assert res.group is None
 
 
@@ -182,7 +193,8 @@ def test_a_refined_policy_goes_on_from_its_residual(tmp_path):
 @pytest.mark.parametrize(("extra", "hint"), [
     (["--leg", "FL,FR"], "one leg"), (["--leg", "XX"], "XX"), (["--pairs", "0"], "pairs"),
     (["--resume", "--state", "nowhere.json"], "no state"), (["--dr", "shove=1"], "FIELD"),
-    (["--fail-cost", "0"], "fail-cost"), (["--tilt-cost", "-1"], "tilt-cost")])
+    (["--fail-cost", "0"], "fail-cost"), (["--tilt-cost", "-1"], "tilt-cost"),
+    (["--clearance-target", "0.2"], "clearance-target")])
 def test_bad_refine_exits_with_one_line(extra, hint, tmp_path):
     p = subprocess.run([sys.executable, "-m", "policy_train.cli", "refine", str(V21), "--out",
                         str(tmp_path / "o"), "--generations", "1", *extra],
