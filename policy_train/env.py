@@ -223,6 +223,13 @@ class TripodEnv:
         self.sensordata, self.act_force = b.bind("sensordata"), b.bind("actuator_force")
         self.subtree_com = b.bind("subtree_com")  # (N, nbody, 3); the base's = whole robot's
         self.gainprm, self.biasprm = b.expand("actuator_gainprm"), b.expand("actuator_biasprm")
+        # per env: a motor of strength s delivers s times the clamped PD torque, so its peak
+        # is s times the effort limit (never above it), as sim.effects.MotorStrength on the
+        # mock's simulator. Scaling the gains alone left a weak motor the full peak: the
+        # refinement then favoured policies whose rear hips saturate under weak motors there
+        # (docs/policy-training.md, "Stop 59")
+        self.forcerange = b.expand("actuator_forcerange")
+        self._effort = np.tile(np.asarray(EFFORT_LIMIT, dtype=float), len(MODEL_LEGS))
         self.default_pose = default_crouch("model")
         self.soft_lo, self.soft_hi = cfg.soft_limits(MODEL_LEGS)
         self.obs_terms = default_terms(model_to_sdk(self.default_pose), "zero")
@@ -353,6 +360,12 @@ class TripodEnv:
         self.reset_idx(np.arange(self.N))
         self._compute_state()
 
+    def torque_peak(self, strength: np.ndarray) -> np.ndarray:
+        """(n, 12) the most torque each motor delivers, N m, model order, for motor
+        strengths ``strength`` (n,): ``min(s, 1)`` times the effort limits (the PD law is
+        clamped to them, then scaled; the current limit still caps a strong motor)."""
+        return np.minimum(np.asarray(strength, dtype=float), 1.0)[:, None] * self._effort
+
     def reset_idx(self, ids: np.ndarray) -> None:
         if len(ids) == 0:
             return
@@ -407,6 +420,7 @@ class TripodEnv:
         self.cmd_hist[ids, :, 0] = np.broadcast_to(q, (n, 12))[:, None]
         self.cmd_hist[ids, :, 1] = self._kp * (self.kp_s[ids] * self.strength[ids])[:, None, None]
         self.cmd_hist[ids, :, 2] = self._kd * (self.kd_s[ids] * self.strength[ids])[:, None, None]
+        self.forcerange[ids] = self.torque_peak(self.strength[ids])[:, :, None] * [-1.0, 1.0]
         self.gainprm[ids, :, 0] = self.cmd_hist[ids, 0, 1]
         self.biasprm[ids, :, 1] = -self.cmd_hist[ids, 0, 1]
         self.biasprm[ids, :, 2] = -self.cmd_hist[ids, 0, 2]

@@ -146,7 +146,8 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
         "lift_command_after_done": 0,
         "legs": [cj.check_leg(g) for g in legs] if legs else list(cj.LEGS),
         "training_model": {"integrator": "implicitfast", "armature": ARMATURE,
-                           "actuator": "position (kp, kv), forcerange = effort limits"},
+                           "actuator": "position (kp, kv), forcerange = min(motor strength, 1) "
+                                       "x effort limits"},
         "evaluation": {},
     }
 

@@ -2,7 +2,8 @@
 
 Python per physics step is the bottleneck of RL training, so here MuJoCo computes the PD law
 itself: each motor is a ``position`` actuator (``kp``, ``kv``) with ``forcerange`` = the effort
-limits, so ``tau = clamp(kp * (ctrl - q) - kv * dq)``; a velocity target is folded into the
+limits (the environment scales it per env with the drawn motor strength: ``TripodEnv.torque_peak``),
+so ``tau = clamp(kp * (ctrl - q) - kv * dq)``; a velocity target is folded into the
 control as ``ctrl = q_des + (kd / kp) * dq_des`` (exact). ``mujoco.batch.Batch`` then steps
 many copies in C on a thread pool. Differences from :class:`sim.go2.Go2Sim` (documented in
 ``docs/policy-training.md``): ``implicitfast`` integration (the damping term is implicit, so

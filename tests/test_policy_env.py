@@ -562,3 +562,27 @@ def test_noise_scale_quiets_the_sensors_per_episode_and_is_drawn_only_when_set()
     a, b = TripodEnv(plain), TripodEnv(spread)
     assert np.all(a.noise_scale == 1.0)
     assert np.all((b.noise_scale >= 0.2) & (b.noise_scale <= 0.9))
+
+
+def test_motor_strength_scales_the_torque_peak_as_on_the_mocks_simulator():
+    """A weak motor delivers s times the clamped PD torque, its peak included (as
+    sim.effects.MotorStrength after sim.go2's clamp); a strong one stays at the effort limit."""
+    from calib.joints import EFFORT_LIMIT
+    from policy_train.config import DRConfig
+
+    dr = DRConfig(motor_strength=(0.6, 0.6), kp_scale=(1.0, 1.0), kd_scale=(1.0, 1.0),
+                  latency_steps=(0, 0), push_vel=0.0)
+    e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=3, threads=1, kp=60.0,
+                            decimation=1, dr=dr))
+    lim = np.tile(EFFORT_LIMIT, 4)
+    np.testing.assert_allclose(e.forcerange[:, :, 1], 0.6 * np.broadcast_to(lim, (2, 12)))
+    np.testing.assert_allclose(e.forcerange[:, :, 0], -e.forcerange[:, :, 1])
+    np.testing.assert_allclose(e.torque_peak(np.array([0.5, 1.3])), [0.5 * lim, lim])
+    # the physics: every target 1.5 rad off (to the soft limits: 0.6-1.2 rad) asks
+    # kp x strength x error of 22-43 N m of every motor in the (one, 5 ms) physics step, over
+    # 0.6 x the effort limit
+    e.lift_leg[:] = -1
+    e.target[:] = e.q + np.tile([1.5, 1.5, -1.5], 4)
+    e.step(np.zeros((2, 12)))
+    np.testing.assert_allclose(np.abs(e.act_force), 0.6 * np.broadcast_to(lim, (2, 12)),
+                               rtol=1e-9)
