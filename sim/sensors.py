@@ -75,12 +75,16 @@ def _nonneg(x, name: str) -> float:
 
 
 def _vec3(x, name: str) -> np.ndarray:
-    a = np.asarray(x, dtype=float)
-    try:
-        a = np.broadcast_to(a, (3,)).copy()
-    except ValueError:
-        raise ValueError(f"{name} must have shape (3,) or be a scalar, got {np.shape(x)}") from None
-    if not np.all(np.isfinite(a)):
+    # the streaming update calls this twice per physics step and foot on the mock: the common
+    # (3,) case skips broadcast_to, whose Python layers cost more than the copy
+    a = np.array(x, dtype=float)
+    if a.shape != (3,):
+        try:
+            a = np.broadcast_to(a, (3,)).copy()
+        except ValueError:
+            raise ValueError(f"{name} must have shape (3,) or be a scalar, got {np.shape(x)}"
+                             ) from None
+    if not np.isfinite(a).all():
         raise ValueError(f"{name} must be finite")
     return a
 
@@ -371,11 +375,13 @@ class FootImuModel:
         if t < t_prev:
             raise ValueError(f"time went backwards: {t} < {t_prev}")
         out: list[ImuSample] = []
-        s_j, s_g, s_a, s_bg, s_ba = self._draw_params()
+        draws = None
         while True:
             tau = self._t0 + self._k / c.rate
             if tau > t + 1e-9:
                 break
+            if draws is None:
+                s_j, s_g, s_a, s_bg, s_ba = draws = self._draw_params()
             if t > t_prev:
                 w = (tau - t_prev) / (t - t_prev)
                 om_k = om_prev + w * (om - om_prev)

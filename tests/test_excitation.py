@@ -293,15 +293,15 @@ def test_a_plan_the_optimiser_could_not_bring_to_kappa_1_is_not_played():
     such a plan, a lift schedule played it. Both now ask ExcitationPlan.problems()."""
     from deploy.lift_schedule import LiftSchedule
 
-    poor = plan_excitation(ExcitationConfig(leg="FL", t_r=0.04, n_basis=40))
+    poor = plan_excitation(ExcitationConfig(leg="FL", t_r=0.04, n_basis=4))
     assert poor.problems() and "kappa" in poor.problems()[0]
-    sched = LiftSchedule.from_metadata({"t_r": 0.04, "n_basis": 40.0, "periods": 1,
+    sched = LiftSchedule.from_metadata({"t_r": 0.04, "n_basis": 4.0, "periods": 1,
                                         "seed": 0.0})
     with pytest.raises(ValueError, match="excitation for FL cannot be played: the optimiser"):
         sched.plan("FL")
     # a JSON's whole-number floats are the integers (numpy refused them at plan time)
     cfg = sched.excitation_config("FL")
-    assert (cfg.n_basis, cfg.seed) == (40, 0) and isinstance(cfg.n_basis, int)
+    assert (cfg.n_basis, cfg.seed) == (4, 0) and isinstance(cfg.n_basis, int)
 
 
 def test_bad_inputs():

@@ -82,17 +82,28 @@ def check_against_truth(result, robot, out, legs):
         assert (out / f"{o.leg}.png").stat().st_size > 10_000
 
 
-def test_hung_robot_all_legs_recover_mounting_and_every_lowstate_recorded(policies, tmp_path):
-    robot = start_mock(seed=11)
+HUNG_SEED = 11
+
+
+@pytest.fixture(scope="module")
+def hung_all_legs(policies, tmp_path_factory):
+    """The hung robot calibrating all four legs in turn: (result, stopped robot, out dir)."""
+    out = tmp_path_factory.mktemp("hung_all_legs")
+    robot = start_mock(seed=HUNG_SEED)
     try:
-        result = deploy(robot, policies["hold"], ["FL", "FR", "RL", "RR"], tmp_path)
+        result = deploy(robot, policies["hold"], ["FL", "FR", "RL", "RR"], out)
     finally:
         robot.stop()
+    return result, robot, out
+
+
+def test_hung_robot_all_legs_recover_mounting_and_every_lowstate_recorded(hung_all_legs):
+    result, robot, out = hung_all_legs
     # Both counts read once the robot's thread has stopped: an idle repeat of the last
     # LowState can come between two reads made while it runs (CI once counted 1 too few).
     published, repeated = robot.lowstates_published, robot.lowstates_repeated
     assert result.fault is None and result.final_state is State.DONE
-    check_against_truth(result, robot, tmp_path, ["FL", "FR", "RL", "RR"])
+    check_against_truth(result, robot, out, ["FL", "FR", "RL", "RR"])
     # The session file holds every LowState the robot sent (500 Hz, not just 1 in 10).
     from hw.mcap_io import read_mcap
 
@@ -227,25 +238,16 @@ def test_lockstep_mock_waits_for_a_slow_imu_reader_and_drops_no_frame(policies, 
     assert len(seq) > 2000 and np.all(np.diff(seq) % 65536 == 1)
 
 
-def test_lockstep_runs_do_not_depend_on_how_fast_the_host_solves(policies, tmp_path,
-                                                                  monkeypatch):
-    """The same seed twice, the second with a solver 1 s slower: the robot waits for it, so
-    the second leg starts from the same state and both legs come out bit for bit the same."""
+def test_lockstep_runs_do_not_depend_on_how_fast_the_host_solves(policies, hung_all_legs,
+                                                                  tmp_path, monkeypatch):
+    """The all-leg run's seed again, its first two legs with a solver 1 s slower: the robot
+    waits for it, so the second leg starts from the same state and both legs come out bit for
+    bit as in that run (a leg's result depends on nothing after its own motion)."""
     import time
 
     import deploy.solve as solve_mod
 
-    def run(out):
-        robot = start_mock(seed=13)
-        try:
-            result = deploy(robot, policies["hold"], ["FL", "RR"], out)
-        finally:
-            robot.stop()
-        assert [o.ok for o in result.outcomes] == [True, True]
-        return {leg: json.loads((out / f"{leg}.json").read_text())
-                for leg in ("FL", "RR")}
-
-    fast = run(tmp_path / "fast")
+    _, _, fast_out = hung_all_legs
     solve_leg = solve_mod.solve_leg
 
     def slow_solve_leg(*a, **k):
@@ -253,10 +255,17 @@ def test_lockstep_runs_do_not_depend_on_how_fast_the_host_solves(policies, tmp_p
         return solve_leg(*a, **k)
 
     monkeypatch.setattr(solve_mod, "solve_leg", slow_solve_leg)
-    slow = run(tmp_path / "slow")
-    for leg in ("FL", "RR"):
+    robot = start_mock(seed=HUNG_SEED)
+    try:
+        result = deploy(robot, policies["hold"], ["FL", "FR"], tmp_path)
+    finally:
+        robot.stop()
+    assert [o.ok for o in result.outcomes] == [True, True]
+    for leg in ("FL", "FR"):
+        slow = json.loads((tmp_path / f"{leg}.json").read_text())
+        fast = json.loads((fast_out / f"{leg}.json").read_text())
         for key in ("rotation_matrix", "time_offset_s"):
-            assert slow[leg][key] == fast[leg][key], (leg, key)
+            assert slow[key] == fast[key], (leg, key)
 
 
 def test_l2_b_mid_motion_damps_within_one_tick(policies, tmp_path):
