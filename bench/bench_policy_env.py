@@ -19,26 +19,38 @@ Where the scaling goes (docs/policy-training.md, "Stop 50" and "Stop 51"):
   threads (``--group-threads N``: N each), stepped at once from K Python threads, so that one
   group's numpy may run while another's batch steps (MuJoCo's calls and numpy's array loops
   release the GIL); ``--switch-interval S`` sets how long a thread may hold the GIL while
-  another waits (``sys.setswitchinterval``, Python's default 0.005 s).
+  another waits (``sys.setswitchinterval``, Python's default 0.005 s);
+* ``--parts``: where the step's numpy goes, ms a step in each part of it (the first thread
+  and block count; "Stop 60");
+* ``--against REF``: the environment of ``policy_train/env.py`` at git revision REF (the rest
+  of the package as it is now) side by side with the current one, in this process, stepping
+  alternately on the same actions: the rest of the step of each, their ratio, and whether the
+  two gave the same observations, rewards and state to the last bit.
 
   .venv/bin/python bench/bench_policy_env.py [--envs 256] [--steps 40] [--threads 1,2]
       [--batch] [--blocks 1,2] [--processes 1,2] [--groups 1,2] [--group-threads N]
-      [--switch-interval S] [--pack DIR]
+      [--switch-interval S] [--pack DIR] [--parts] [--against REF]
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import inspect
 import multiprocessing as mp
 import os
 import queue
+import subprocess
 import sys
+import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
+import policy_train.env as env_module
+from deploy.leg_dynamics import LegDynamics
 from policy_train.config import EnvConfig
 from policy_train.env import TripodEnv
 
@@ -47,9 +59,9 @@ PACK_FILES = {"model_file": "go2_train.mjb", "plan_pool_file": "pool.npz",
 WARMUP = 5
 
 
-def _env(n_envs: int, threads: int, pack: Path | None, blocks: int = 1) -> TripodEnv:
+def _env(n_envs: int, threads: int, pack: Path | None, blocks: int = 1, cls=TripodEnv):
     files = {} if pack is None else {k: str(pack / f) for k, f in PACK_FILES.items()}
-    return TripodEnv(EnvConfig(num_envs=n_envs, plans_per_leg=1, seed=0, threads=threads,
+    return cls(EnvConfig(num_envs=n_envs, plans_per_leg=1, seed=0, threads=threads,
                                blocks=blocks, **files))
 
 
@@ -98,6 +110,94 @@ def measure(n_envs: int, threads: int, steps: int, pack: Path | None = None,
             env.batch.step(nstep=1)
     alone = steps * n_envs / (time.perf_counter() - t0)
     return rate, (in_step, 1e3 * seconds / steps - in_step, alone)
+
+
+# (label, owner, attribute): the step's parts timed by --parts; nested ones are inside the one above
+PARTS = (("the substeps' commands", TripodEnv, "_command"),
+         ("  of which the lifted legs' targets", TripodEnv, "_lift_targets"),
+         ("    of which their feed-forward", LegDynamics, "torques_of_legs"),
+         ("    of which their plan (also once after the substeps)", TripodEnv, "_plan"),
+         ("rewards", env_module, "compute_rewards"),
+         ("observations", TripodEnv, "observations"),
+         ("contacts", TripodEnv, "_contacts"),
+         ("resets", TripodEnv, "reset_idx"),
+         ("state", TripodEnv, "_compute_state"))
+
+
+def measure_parts(n_envs: int, threads: int, steps: int, pack: Path | None = None,
+                  blocks: int = 1) -> tuple[float, float, dict[str, float]]:
+    """(ms a step, ms of it in the batch's calls, {part: ms a step}) of :data:`PARTS`."""
+    env = _env(n_envs, threads, pack, blocks)
+    rng = np.random.default_rng(0)
+    _run(env, WARMUP, rng)
+    spent = dict.fromkeys([label for label, _, _ in PARTS], 0.0)
+    saved = [(owner, name, inspect.getattr_static(owner, name)) for _, owner, name in PARTS]
+
+    def timed(label, f):
+        def run(*args, **kwargs):
+            t0 = time.perf_counter()
+            try:
+                return f(*args, **kwargs)
+            finally:
+                spent[label] += time.perf_counter() - t0
+        return run
+
+    for (label, owner, name), (_, _, raw) in zip(PARTS, saved):
+        f = timed(label, getattr(owner, name))
+        setattr(owner, name, staticmethod(f) if isinstance(raw, staticmethod) else f)
+    try:
+        env.batch = _TimedBatch(env.batch)
+        seconds = _run(env, steps, rng)
+    finally:
+        for owner, name, raw in saved:
+            setattr(owner, name, raw)
+    return (1e3 * seconds / steps, 1e3 * env.batch.seconds / steps,
+            {k: 1e3 * v / steps for k, v in spent.items()})
+
+
+def _env_class_at(ref: str):
+    """TripodEnv of policy_train/env.py at git revision ``ref``."""
+    root = Path(__file__).resolve().parents[1]
+    got = subprocess.run(["git", "-C", str(root), "show", f"{ref}:policy_train/env.py"],
+                         capture_output=True, text=True, check=False)
+    if got.returncode != 0:
+        raise SystemExit(f"bench_policy_env: --against {ref}: "
+                         f"{(got.stderr.strip().splitlines() or ['git show failed'])[-1]}")
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "env_at_ref.py"
+        path.write_text(got.stdout)
+        spec = importlib.util.spec_from_file_location("policy_train._env_at_ref", path)
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules[spec.name] = mod  # dataclasses look their module up
+        spec.loader.exec_module(mod)
+    return mod.TripodEnv
+
+
+def measure_against(old_cls, n_envs: int, threads: int, steps: int,
+                    pack: Path | None = None, blocks: int = 1
+                    ) -> tuple[float, float, bool]:
+    """(rest of the step of ``old_cls`` (:func:`_env_class_at`), of now, ms; whether every step
+    gave the same bits), the two environments stepped alternately on the same actions (the old
+    one first on even steps)."""
+    envs = [_env(n_envs, threads, pack, blocks, cls) for cls in (old_cls, TripodEnv)]
+    for e in envs:
+        e.batch = _TimedBatch(e.batch)
+    rng = np.random.default_rng(0)
+    total, same = [0.0, 0.0], True
+    for i in range(WARMUP + steps):
+        a = rng.normal(0, 0.1, (n_envs, 12))
+        out = [None, None]
+        for j in ((0, 1) if i % 2 == 0 else (1, 0)):
+            if i == WARMUP:
+                envs[j].batch.seconds = 0.0
+            t0 = time.perf_counter()
+            obs, rew, dones, _ = envs[j].step(a)
+            if i >= WARMUP:
+                total[j] += time.perf_counter() - t0
+            out[j] = (*(np.asarray(v) for v in obs.values()), rew, dones, envs[j].qpos)
+        same &= all(np.array_equal(x, y) for x, y in zip(*out))
+    rest = [1e3 * (total[j] - envs[j].batch.seconds) / steps for j in (0, 1)]
+    return rest[0], rest[1], same
 
 
 def _worker(n_envs: int, threads: int, steps: int, pack: Path | None, seed: int, barrier,
@@ -177,6 +277,10 @@ def main() -> None:
     p.add_argument("--switch-interval", type=float,
                    help="seconds a thread may hold the GIL while another waits")
     p.add_argument("--pack", type=Path, help="a2i-train pack's folder instead of the URDF")
+    p.add_argument("--parts", action="store_true",
+                   help="also time each part of the step's numpy")
+    p.add_argument("--against", metavar="REF",
+                   help="also run policy_train/env.py at git revision REF side by side")
     a = p.parse_args()
     counts = _counts(a.threads, "--threads")
     procs = _counts(a.processes, "--processes") if a.processes else []
@@ -197,6 +301,7 @@ def main() -> None:
     if missing:
         raise SystemExit(f"bench_policy_env: {a.pack} lacks {', '.join(missing)} "
                          "(write it with a2i-train pack)")
+    old_cls = _env_class_at(a.against) if a.against else None  # a bad REF fails first
     print(f"{os.cpu_count()} CPUs; {a.envs} envs, {a.steps} steps per count; GIL switch "
           f"interval {sys.getswitchinterval() * 1e3:g} ms", flush=True)
     res = {}
@@ -224,6 +329,21 @@ def main() -> None:
         print("| --- | --- | --- |")
         for k, r in rp.items():
             print(f"| {k} | {r:,.0f} | {r / rp[procs[0]]:.2f} |")
+
+    if a.parts:
+        th, k = counts[0], blocks[0]
+        step, in_batch, parts = measure_parts(a.envs, th, a.steps, a.pack, k)
+        print(f"\n{th} thread(s), {k} block(s): a step {step:.1f} ms, {in_batch:.1f} in the "
+              f"batch's calls, {step - in_batch:.1f} the rest; of the rest:")
+        print("| part | ms a step |\n| --- | --- |")
+        for label, ms in parts.items():
+            print(f"| {label} | {ms:.2f} |")
+    if a.against:
+        th, k = counts[0], blocks[0]
+        old, new, same = measure_against(old_cls, a.envs, th, a.steps, a.pack, k)
+        print(f"\npolicy_train/env.py at {a.against} against now, {th} thread(s), {k} "
+              f"block(s), side by side: rest of the step {old:.2f} ms against {new:.2f} "
+              f"(ratio {new / old:.3f}); the same bits every step: {'yes' if same else 'no'}")
 
     if groups:
         th = max(counts)
