@@ -24,8 +24,9 @@ Where the scaling goes (docs/policy-training.md, "Stop 50" and "Stop 51"):
   and block count; "Stop 60");
 * ``--against REF``: the environment of ``policy_train/env.py`` at git revision REF (the rest
   of the package as it is now) side by side with the current one, in this process, stepping
-  alternately on the same actions: the rest of the step of each, their ratio, and whether the
-  two gave the same observations, rewards and state to the last bit.
+  alternately on the same actions: the rest of the step of each, their ratio (with one block;
+  with more, the batch's calls overlap the numpy, as for ``--batch``), and whether the two gave
+  the same observations, rewards and state to the last bit.
 
   .venv/bin/python bench/bench_policy_env.py [--envs 256] [--steps 40] [--threads 1,2]
       [--batch] [--blocks 1,2] [--processes 1,2] [--groups 1,2] [--group-threads N]
