@@ -43,10 +43,15 @@ the URDF has none). The training model puts it on every joint (``policy_train.mo
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross product (broadcasting (3,) against (N, 3)); np.cross costs ~20 us a
-    call, which dominates one on-board tick's recursion."""
+    call, which dominates one on-board tick's recursion. The differences are written into
+    the result, not stacked (0.8 of the time at 1 500 rows, the same bits)."""
     a1, a2, a3 = a[..., 0], a[..., 1], a[..., 2]
     b1, b2, b3 = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([a2 * b3 - a3 * b2, a3 * b1 - a1 * b3, a1 * b2 - a2 * b1], axis=-1)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    np.subtract(a2 * b3, a3 * b2, out=out[..., 0])
+    np.subtract(a3 * b1, a1 * b3, out=out[..., 1])
+    np.subtract(a1 * b2, a2 * b1, out=out[..., 2])
+    return out
 
 
 @dataclass(frozen=True)
@@ -224,18 +229,20 @@ def _rnea(arrays, q, dq, ddq, g) -> np.ndarray:
         s, c1 = np.sin(q[:, k]), 1.0 - np.cos(q[:, k])
         rot.append(r0[:, k] @ (np.eye(3) + s[:, None, None] * kk[:, k]
                                + c1[:, None, None] * kk2[:, k]))
-    w = np.zeros((n, 3))
-    dw = np.zeros((n, 3))
     acc = -GRAVITY * g  # the base "accelerates up" at g: gravity on every link at once
     force, moment = [], []
     for k in range(3):
         rt = np.swapaxes(rot[k], 1, 2)
         p, ax = p0[:, k], axes[:, k]
-        acc = _mv(rt, acc + _cross(dw, p) + _cross(w, _cross(w, p)))
-        w_in = _mv(rt, w)
         sa = dq[:, k, None] * ax
-        w = w_in + sa
-        dw = _mv(rt, dw) + ddq[:, k, None] * ax + _cross(w_in, sa)
+        if k == 0:  # the base is still: the hip's parent neither turns nor speeds its turn
+            acc = _mv(rt, acc)
+            w, dw = sa, ddq[:, k, None] * ax
+        else:
+            acc = _mv(rt, acc + _cross(dw, p) + _cross(w, _cross(w, p)))
+            w_in = _mv(rt, w)
+            w = w_in + sa
+            dw = _mv(rt, dw) + ddq[:, k, None] * ax + _cross(w_in, sa)
         c = com[:, k]
         ac = acc + _cross(dw, c) + _cross(w, _cross(w, c))
         force.append(mass[:, k, None] * ac)

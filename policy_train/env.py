@@ -77,6 +77,17 @@ PRIV_TERMS: tuple[tuple[str, int], ...] = (
 PRIV_SIZE = sum(n for _, n in PRIV_TERMS)
 
 
+def _columns(idx: np.ndarray) -> slice | np.ndarray:
+    """Column indices as a strided slice where they are evenly spaced (a view of the batch's
+    sensor rows, not a copy: the contact sensors lie every 4 columns, and copying them out
+    was most of the contacts' time each physics step), else the indices."""
+    idx = np.asarray(idx, dtype=int)
+    step = np.diff(idx) if len(idx) > 1 else np.ones(1, int)
+    if len(idx) and step[0] > 0 and np.all(step == step[0]):
+        return slice(int(idx[0]), int(idx[-1]) + 1, int(step[0]))
+    return idx
+
+
 def _quat_rotate_inv(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Rotate world vectors v (N, 3) into the frame of the unit quaternions q (N, 4) wxyz."""
     w, x, y, z = q[:, 0:1], q[:, 1:2], q[:, 2:3], q[:, 3:4]
@@ -158,20 +169,24 @@ class PlanPool:
     def of_leg(self, li: int) -> np.ndarray:
         return np.flatnonzero(self.leg == li)
 
-    def sample(self, k: np.ndarray, te: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Plan k (N,) at te (N,) s from its start: (q (N, 3), dq (N, 3))."""
+    def sample(self, k: np.ndarray, te: np.ndarray, accelerations: bool = False):
+        """Plan k (N,) at te (N,) s from its start: (q (N, 3), dq (N, 3)), with
+        ``accelerations`` also ddq (N, 3), rad/s^2 (:meth:`sample_acceleration`)."""
         i = np.clip(np.rint(te / self.dt).astype(int), 0, self.length[k] - 1)
-        inside = (te >= 0) & (te <= self.duration[k])
-        return self.q[k, i], np.where(inside[:, None], self.dq[k, i], 0.0)
+        inside = ((te >= 0) & (te <= self.duration[k]))[:, None]
+        q, dq = self.q[k, i], np.where(inside, self.dq[k, i], 0.0)
+        return (q, dq, np.where(inside, self._accelerations()[k, i], 0.0)) if accelerations \
+            else (q, dq)
 
     def sample_acceleration(self, k: np.ndarray, te: np.ndarray) -> np.ndarray:
         """Plan k (N,) at te (N,) s: ddq (N, 3), rad/s^2 (central differences of the tabulated
         rates, which pools saved before it also give)."""
+        return self.sample(k, te, accelerations=True)[2]
+
+    def _accelerations(self) -> np.ndarray:
         if not hasattr(self, "_ddq"):
             self._ddq = np.gradient(self.dq, self.dt, axis=1)
-        i = np.clip(np.rint(te / self.dt).astype(int), 0, self.length[k] - 1)
-        inside = (te >= 0) & (te <= self.duration[k])
-        return np.where(inside[:, None], self._ddq[k, i], 0.0)
+        return self._ddq
 
 
 class TripodEnv:
@@ -255,6 +270,10 @@ class TripodEnv:
         self._joint_fric = b.expand("dof_frictionloss")
         self._g = float(np.linalg.norm(m.opt.gravity))
         self._gravity = None  # opt.gravity per env, expanded at the first tilted floor drawn
+        # the contact sensors' columns in sensordata, read after every physics step
+        tm = self.tm
+        self._foot_cols, self._base_cols = _columns(tm.foot_contact), _columns(tm.base_contact)
+        self._other_cols = (_columns(tm.other_contact + 1), _columns(tm.other_contact + 3))
         self._feet_geoms = np.array([m.geom(f"{leg}_foot").id for leg in MODEL_LEGS] + [m.geom("floor").id])
         # level tripod stances in static equilibrium, one per lifted leg (reference starts)
         self.ref_poses = [tripod_pose(
@@ -289,6 +308,7 @@ class TripodEnv:
         cfg = self.cfg
         depth = cfg.dr.latency_steps[1] + 1 if cfg.dr.enabled else 1
         self.cmd_hist = z((N, depth, 3, 12))
+        self._gains = z((N, 2, 12))  # the (kp, kd) the batch's actuators have (_set_gains)
         self._hist_new = 0
         self.actions = z((N, 12))          # raw, SDK order
         self.prev_actions = z((N, 12))
@@ -424,9 +444,7 @@ class TripodEnv:
         self.cmd_hist[ids, :, 1] = self._kp * (self.kp_s[ids] * self.strength[ids])[:, None, None]
         self.cmd_hist[ids, :, 2] = self._kd * (self.kd_s[ids] * self.strength[ids])[:, None, None]
         self.forcerange[ids] = self.torque_peak(self.strength[ids])[:, :, None] * [-1.0, 1.0]
-        self.gainprm[ids, :, 0] = self.cmd_hist[ids, 0, 1]
-        self.biasprm[ids, :, 1] = -self.cmd_hist[ids, 0, 1]
-        self.biasprm[ids, :, 2] = -self.cmd_hist[ids, 0, 2]
+        self._set_gains(ids, self.cmd_hist[ids, 0, 1:])
         self._sample_commands(ids)
         if self.ref_poses:
             ref = rng.random(n) < self.cfg.p_reference_start
@@ -517,18 +535,25 @@ class TripodEnv:
         self.phase[ids] = np.where(lifted, 0, 5)
 
     # ------------------------------------------------------------------ lifted leg
-    def _plan(self, act: np.ndarray, t: np.ndarray):
+    def _plan(self, act: np.ndarray, t: np.ndarray, accelerations: bool = False):
         """(q_des, dq_des (n, 3), phase (n,)) of the lifted legs of envs ``act`` at their lift
-        times ``t`` (s): the schedule's plan, nothing latched or measured."""
+        times ``t`` (s): the schedule's plan, nothing latched or measured; with
+        ``accelerations`` also ddq_des (n, 3), rad/s^2, and the time into the excitation te
+        (n,), s."""
         d = self.lift_dur[act]
         k = self.lift_plan[act]
         te = t - d[:, :3].sum(1)
-        q_exc, dq_exc = self.pool.sample(k, te)
+        q_exc, dq_exc, *ddq_exc = self.pool.sample(k, te, accelerations)
         q0 = self.pool.q0[k]
-        hold = ~self.lift_excite[act]
-        q_exc = np.where(hold[:, None], q0, q_exc)
-        dq_exc = np.where(hold[:, None], 0.0, dq_exc)
-        return blend_targets(t, d, self.lift_q_start[act], q0, q_exc, dq_exc)
+        hold = ~self.lift_excite[act][:, None]
+        q_exc = np.where(hold, q0, q_exc)
+        dq_exc = np.where(hold, 0.0, dq_exc)
+        q_start = self.lift_q_start[act]
+        out = blend_targets(t, d, q_start, q0, q_exc, dq_exc)
+        if not accelerations:
+            return out
+        ddq_exc = np.where(hold, 0.0, ddq_exc[0])
+        return (*out, blend_accelerations(t, d, q_start, q0, ddq_exc), te)
 
     def _lift_targets(self, t: np.ndarray, tick: bool = False, rows: slice = slice(None)):
         """(ids, joint idx (n, 3), q_des, dq_des, tau (n, 3) N m or None, phase) of the envs of
@@ -546,15 +571,11 @@ class TripodEnv:
             jl = 7 + 3 * self.lift_leg[latch][:, None] + np.arange(3)
             self.lift_q_start[latch] = self.qpos[latch[:, None], jl]
             self.lift_latched[latch] = True
-        qd, dqd, ph = self._plan(act, t[act])
-        k, q0 = self.lift_plan[act], self.pool.q0[self.lift_plan[act]]
-        te = t[act] - d[:, :3].sum(1)
-        hold = ~self.lift_excite[act]
+        need_ddq = self.cfg.lift_feedforward or self.adapter is not None
+        qd, dqd, ph, *ddq_te = self._plan(act, t[act], accelerations=need_ddq)
+        ddq, te = ddq_te or (None, None)
         jidx = 3 * self.lift_leg[act][:, None] + np.arange(3)
         tau = None
-        if self.cfg.lift_feedforward or self.adapter is not None:
-            ddq_exc = np.where(hold[:, None], 0.0, self.pool.sample_acceleration(k, te))
-            ddq = blend_accelerations(t[act], d, self.lift_q_start[act], q0, ddq_exc)
         if self.cfg.lift_feedforward:
             on = (ph >= 1) & (ph <= 4)
             tau = np.zeros((len(act), 3))
@@ -707,9 +728,21 @@ class TripodEnv:
         lag = (w + self.latency[rows]) % self.cmd_hist.shape[1]
         applied = self.cmd_hist[rows][np.arange(len(ctrl)), lag]
         self.ctrl[rows] = applied[:, 0]
-        self.gainprm[rows, :, 0] = applied[:, 1]
-        self.biasprm[rows, :, 1] = -applied[:, 1]
-        self.biasprm[rows, :, 2] = -applied[:, 2]
+        # the gains change only where a lifted leg's schedule switches them (through the
+        # latency): those rows are written, not all (each env's gain is a cache line of the
+        # batch's model, and rewriting them all was a sixth of the commands' time)
+        gains = applied[:, 1:]
+        changed = np.flatnonzero((gains != self._gains[rows]).any(axis=(1, 2)))
+        if len(changed):
+            self._set_gains(lo + changed, gains[changed])
+
+    def _set_gains(self, ids: np.ndarray, gains: np.ndarray) -> None:
+        """The actuators' PD gains of the envs ``ids``: gains (n, 2, 12) kp N m/rad, kd
+        N m s/rad (MuJoCo's position actuator: kp (ctrl - q) - kd dq)."""
+        self._gains[ids] = gains
+        self.gainprm[ids, :, 0] = gains[:, 0]
+        self.biasprm[ids, :, 1] = -gains[:, 0]
+        self.biasprm[ids, :, 2] = -gains[:, 1]
 
     def _launch(self, ids: np.ndarray | None):
         """One physics step of the envs ``ids`` (None: all, here and now); with row blocks,
@@ -730,13 +763,12 @@ class TripodEnv:
 
     def _contacts(self, rows: slice) -> None:
         """Accumulate the contacts of the physics step the envs of ``rows`` just took."""
-        tm = self.tm
         sd = self.sensordata[rows]
-        fc = sd[:, tm.foot_contact] > 0
+        fc = sd[:, self._foot_cols] > 0
         self.foot_touch[rows] |= fc
-        self.geom_touch[rows] |= np.abs(sd[:, tm.other_contact + 1]) + np.abs(
-            sd[:, tm.other_contact + 3]) > 1.0
-        self.base_touch[rows] |= np.any(sd[:, tm.base_contact] > 0, axis=1)
+        c1, c3 = self._other_cols
+        self.geom_touch[rows] |= np.abs(sd[:, c1]) + np.abs(sd[:, c3]) > 1.0
+        self.base_touch[rows] |= np.any(sd[:, self._base_cols] > 0, axis=1)
         ll, phase = self.lift_leg[rows], self.phase[rows]
         held = (ll >= 0) & ((phase == 2) | (phase == 3))
         self.lift_touch[rows] |= held & fc[np.arange(len(ll)), np.maximum(ll, 0)]
