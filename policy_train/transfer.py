@@ -208,6 +208,16 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
     _training_like("body_imu", "training with the body IMU mounted 1-2 deg off about any axis "
                    "and a gyro bias of up to +-0.02 rad/s per axis (not in the standard ranges)",
                    imu_tilt_deg=(1.0, 2.0), gyro_bias=0.02),
+    # a robot has all of these at once: each at the lower half of its own scenario's range
+    _training_like("all_at_once", "training with every effect the standard ranges leave out, "
+                   "each at the lower half of its own scenario's range, all at once: joint dry "
+                   "friction 0.2-0.4 N m, damping 1-2 N m s/rad, armature 0.01 kg m^2, a floor "
+                   "tilted 2-3.5 deg, foot IMU nodes of 30-55 g, gear play +-0.003-0.0065 rad, "
+                   "the body IMU 1-1.5 deg off with a gyro bias up to +-0.01 rad/s",
+                   joint_friction=(0.2, 0.4), joint_damping=(1.0, 2.0), armature=(0.01, 0.01),
+                   floor_slope=(math.radians(2.0), math.radians(3.5)),
+                   foot_payload=(0.03, 0.055), backlash=(0.003, 0.0065),
+                   imu_tilt_deg=(1.0, 1.5), gyro_bias=0.01),
 ]}
 
 

@@ -159,7 +159,8 @@ def test_every_substeps_lift_command_is_the_schedule_at_that_substep():
     sent, launch = [], e._launch
 
     def record(ids):
-        sent.append((e.ctrl.copy(), e.qpos.copy(), e.lift_latched.copy()))
+        sent.append((e.ctrl.copy(), e.qpos.copy(), e.lift_latched.copy(),
+                     e.gainprm[:, :, 0].copy(), -e.biasprm[:, :, 2]))
         return launch(ids)
 
     e._launch = record
@@ -173,7 +174,7 @@ def test_every_substeps_lift_command_is_the_schedule_at_that_substep():
         sent.clear()
         e.step(np.zeros((2, 12)))
         stand = {}
-        for s, (ctrl, qpos, latched) in enumerate(sent):
+        for s, (ctrl, qpos, latched, kp, kd) in enumerate(sent):
             latched_at |= {s for i in ids if latched[i] and not (sent[s - 1][2][i] if s else True)}
             t = t0 + s * dt
             qd, dqd, ph = e._plan(ids, t)
@@ -184,6 +185,13 @@ def test_every_substeps_lift_command_is_the_schedule_at_that_substep():
             policy = np.ones((2, 12), dtype=bool)  # joints on the policy's target
             policy[ids[lifted & (ph >= 1)][:, None], joints[lifted & (ph >= 1)]] = False
             np.testing.assert_array_equal(ctrl[policy], target[policy])
+            # the actuators' gains: the schedule's on the lifted leg from its lift to its end
+            # (written only where they change), the policy's everywhere else
+            sched = ~policy & (ph[:, None] <= 4)
+            np.testing.assert_array_equal(kp[sched], cfg.lift_kp)
+            np.testing.assert_array_equal(kd[sched], cfg.lift_kd)
+            np.testing.assert_array_equal(kp[~sched], np.broadcast_to(e._kp, (2, 12))[~sched])
+            np.testing.assert_array_equal(kd[~sched], np.broadcast_to(e._kd, (2, 12))[~sched])
             for i in np.flatnonzero(lifted & (ph >= 1) & (ph <= 4)):
                 tau = LiftSchedule.feedforward_torque(MODEL_LEGS[legs[i]], qd[i], dqd[i],
                                                       ddq[i], g[i])[0]

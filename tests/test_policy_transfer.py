@@ -99,6 +99,18 @@ def test_training_scenario_draws_the_training_ranges():
     dist = SCENARIOS["body_imu"].draw(np.random.default_rng(0))[1]
     assert 1.0 <= np.degrees(np.linalg.norm(dist.imu_tilt)) <= 2.0
     assert np.all(np.abs(dist.gyro_bias) <= 0.02) and np.any(dist.gyro_bias)
+    # all at once: every one of those effects, each within the lower half of its own range,
+    # on top of the training's
+    effects, dist = SCENARIOS["all_at_once"].draw(np.random.default_rng(0))
+    kinds = {type(e) for e in effects}
+    assert {CoulombFriction, ViscousFriction, Armature, FloorSlope, FootPayload, Backlash,
+            ActuationLatency, MotorStrength} <= kinds and FloorSoftness not in kinds
+    assert isinstance(effects[-1], Backlash) and np.all(effects[-1].half_width <= 0.0065)
+    assert np.radians(2) <= next(e for e in effects if isinstance(e, FloorSlope)).angle \
+        <= np.radians(3.5)
+    assert all(0.03 <= e.kg <= 0.055 for e in effects if isinstance(e, FootPayload))
+    assert 1.0 <= np.degrees(np.linalg.norm(dist.imu_tilt)) <= 1.5
+    assert np.all(np.abs(dist.gyro_bias) <= 0.01) and dist.push_vel == dr.push_vel
     assert SCENARIOS["training"].draw(np.random.default_rng(0))[1].imu_tilt == (0.0, 0.0, 0.0)
     assert SCENARIOS["quiet"].draw(np.random.default_rng(0))[1].noise_joint_vel == 0.0
     assert SCENARIOS["noisy"].draw(np.random.default_rng(0))[1].noise_joint_vel == 2 * 1.5
@@ -116,7 +128,7 @@ def test_scenarios_keep_their_places():
     assert list(SCENARIOS)[:11] == ["nominal", "training", "heavy", "slippery", "late", "weak",
                                     "joint_friction", "shoves", "noisy", "quiet", "damped_joints"]
     assert list(SCENARIOS)[11:] == ["slope", "soft_floor", "foot_imus", "backlash",
-                                     "body_imu"]
+                                     "body_imu", "all_at_once"]
 
 
 def test_a_body_imu_mounted_off_reads_the_body_in_its_own_frame():
