@@ -318,9 +318,12 @@ def _refined(meta: dict) -> str:
                f"`{c['policy']}`'s residual{played})" if c else played)
     reads = ("rate, tilt and the stance legs' velocity" if len(r.get("inputs", ())) > 5
              else "rate and tilt")
+    kept = "".join(f", over the {' and '.join(k['legs'])} lifts' residual of "
+                   f"{len(k['generations'])} generations kept as it was"
+                   for k in r.get("kept", []))
     return (f"; then {len(r['generations'])} generations of `a2i-train refine` on "
             f"`{r['policy']}`{went_on}: a linear residual on the body's {reads} for the "
-            f"{' and '.join(r['legs'])} lifts, tuned by evolution strategies")
+            f"{' and '.join(r['legs'])} lifts, tuned by evolution strategies{kept}")
 
 
 def _derived(meta: dict) -> str:

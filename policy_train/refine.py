@@ -284,13 +284,15 @@ class ResidualActor(torch.nn.Module):
 
 
 def build_actor(source_onnx: str | Path, leg: str, groups: int = 1,
-                meta_json: str | Path | None = None, velocity: bool = False):
+                meta_json: str | Path | None = None, velocity: bool = False,
+                kept: list[dict] = ()):
     """(meta, actor, residual): the source policy's MLP under a zero residual of ``groups``
     candidates for lifts of ``leg``, wrapped as the source's graph mirrors its legs. meta: the
     JSON ``meta_json`` (default: the source's), whose gains and lift schedule the rollouts play
     and the refined policy keeps: the policy the user named, when that is a derived or refined
     one whose network is ``source_onnx``. velocity: the residual also reads the stance legs'
-    base velocity (:func:`stance_velocity_map`)."""
+    base velocity (:func:`stance_velocity_map`). kept: other lifts' residuals, fixed, under the
+    one tuned (``refined_from`` records of :func:`refine_start`: their ``leg``, ``D``, ``b``)."""
     from rsl_rl.modules import MLP
 
     from policy_train.config import TrainConfig
@@ -312,15 +314,23 @@ def build_actor(source_onnx: str | Path, leg: str, groups: int = 1,
     mlp.load_state_dict(start["actor_mlp"])
     terms = meta["observation"]["terms"]
     cols, lift_col, lift_scale = residual_columns(terms)
-    vel_map = (stance_velocity_map(terms, meta["default_pose"], leg, n_in, float(meta["control_dt"]))
-               if velocity else None)
-    res = ResidualActor(mlp, cols, lift_col, LIFT_VALUES[leg] * lift_scale,
-                        np.zeros((groups, 12, N_IN + N_VEL * velocity)), np.zeros((groups, 12)),
-                        vel_map)
+
+    def vel_map(g: str, on: bool):
+        return (stance_velocity_map(terms, meta["default_pose"], g, n_in,
+                                    float(meta["control_dt"])) if on else None)
+
     mirrored = meta.get("mirrored_legs") or {}
     if leg in mirrored:
         raise ValueError(f"{leg}'s lifts are the mirror of {mirrored[leg]}'s: refine "
                          f"{mirrored[leg]}")
+    base = mlp
+    for k in kept:  # each acts on its own lift command only, so their order does not matter
+        D = np.asarray(k["D"], dtype=float)
+        base = ResidualActor(base, cols, lift_col, LIFT_VALUES[k["leg"]] * lift_scale, D,
+                             np.asarray(k["b"], dtype=float), vel_map(k["leg"], D.shape[1] > N_IN))
+    res = ResidualActor(base, cols, lift_col, LIFT_VALUES[leg] * lift_scale,
+                        np.zeros((groups, 12, N_IN + N_VEL * velocity)), np.zeros((groups, 12)),
+                        vel_map(leg, velocity))
     actor = (MirroredLegsActor(res, terms, mirrored, cfg.env.obs_history) if mirrored
              else res).eval()
     return meta, actor, res
@@ -495,32 +505,40 @@ class RefineState:
     history: list[dict] = field(default_factory=list)
 
 
-def refine_start(start_onnx: str | Path, leg: str,
-                 velocity: bool = False) -> tuple[Path, RefineState, dict | None]:
-    """(network, state, continued): where a refinement of ``start_onnx`` begins. A plain
+def refine_start(start_onnx: str | Path, leg: str, velocity: bool = False
+                 ) -> tuple[Path, RefineState, dict | None, list[dict]]:
+    """(network, state, continued, kept): where a refinement of ``start_onnx`` begins. A plain
     exported policy is the network, under a zero residual. A refined one (its JSON's
-    ``refined_from``) goes on from its residual over its source's network (the file of that
-    name beside it), with its generations as the history, so that generation numbers and
-    hence the seeds played go on; ``continued`` then records the policy continued, its
-    generations and settings. velocity: the residual is to read the stance legs' velocity too
-    (a refined residual without it goes on with those columns at zero; ValueError the other
-    way round)."""
-    start_onnx = Path(start_onnx)
+    ``refined_from``) goes on from its residual for ``leg`` over its source's network (the
+    file of that name beside it), with its generations as the history, so that generation
+    numbers and hence the seeds played go on; ``continued`` then records the policy continued,
+    its generations and settings. Its residuals of other lifts stay in the graph as they are:
+    ``kept``, their ``refined_from`` records (a refinement of the rear lifts of a policy
+    refined on its front ones keeps the front lifts' residual). A lift it has no residual for
+    starts from zero. velocity: the residual is to read the stance legs' velocity too (a
+    refined residual without it goes on with those columns at zero; ValueError the other way
+    round)."""
+    start_onnx, leg = Path(start_onnx), check_leg(leg)
     rf = json.loads(start_onnx.with_suffix(".json").read_text()).get("refined_from")
+    zero = RefineState([0.0] * (72 + 12 * N_VEL * velocity))
     if not rf:
-        return start_onnx, RefineState([0.0] * (72 + 12 * N_VEL * velocity)), None
-    if check_leg(leg) != rf["leg"]:
-        raise ValueError(f"{start_onnx.name} refines {rf['leg']}'s lifts, not {leg}'s")
+        return start_onnx, zero, None, []
     network = start_onnx.with_name(rf["policy"])
     if not network.is_file():
         raise ValueError(f"{start_onnx.name} is refined from {rf['policy']}, which is not "
                          f"beside it")
-    state = RefineState(pack(rf["D"], rf["b"], N_IN + N_VEL * velocity).tolist(),
-                        [dict(g) for g in rf["generations"]])
-    continued = {"policy": start_onnx.name, "generations": len(rf["generations"]),
-                 "config": rf["config"], **({"continued_from": rf["continued_from"]}
-                                            if "continued_from" in rf else {})}
-    return network, state, continued
+    residuals = [{k: v for k, v in rf.items() if k != "kept"}, *rf.get("kept", [])]
+    own = [r for r in residuals if r["leg"] == leg]
+    kept = [r for r in residuals if r["leg"] != leg]
+    if not own:
+        return network, zero, None, kept
+    r = own[0]
+    state = RefineState(pack(r["D"], r["b"], N_IN + N_VEL * velocity).tolist(),
+                        [dict(g) for g in r["generations"]])
+    continued = {"policy": start_onnx.name, "generations": len(r["generations"]),
+                 "config": r["config"], **({"continued_from": r["continued_from"]}
+                                           if "continued_from" in r else {})}
+    return network, state, continued, kept
 
 
 def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg: RefineConfig,
@@ -541,13 +559,14 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
             raise ValueError(f"{state_path} refines {saved.get('start', saved['source'])}, "
                              f"not {start}")
         cfg = RefineConfig(**saved["config"])
-        source_onnx, _, continued = refine_start(source_onnx, cfg.leg, cfg.velocity)
+        source_onnx, _, continued, kept = refine_start(source_onnx, cfg.leg, cfg.velocity)
         state = RefineState(saved["params"], saved["history"])
     else:
-        source_onnx, state, continued = refine_start(source_onnx, cfg.leg, cfg.velocity)
+        source_onnx, state, continued, kept = refine_start(source_onnx, cfg.leg, cfg.velocity)
     legs = _legs_of(source_onnx, cfg.leg)
     K = cfg.pairs
-    meta, actor, res = build_actor(source_onnx, cfg.leg, 2 * K + 1, named_json, cfg.velocity)
+    meta, actor, res = build_actor(source_onnx, cfg.leg, 2 * K + 1, named_json, cfg.velocity,
+                                   kept)
     theta = np.asarray(state.params, dtype=float) / cfg.scales  # in units of the perturbation
     dim = theta.size
     for _ in range(generations):
@@ -582,7 +601,7 @@ def refine(source_onnx: str | Path, out_stem: str | Path, generations: int, cfg:
                         for g, v in rows[0].items())
             + f"; |residual| {np.linalg.norm(theta):.2f} sigma, {rec['wall_s']:.0f} s")
     return export_refined(source_onnx, out_stem, np.asarray(state.params), cfg, state.history,
-                          continued, named_json)
+                          continued, named_json, kept)
 
 
 def _legs_of(source_onnx, leg: str) -> tuple[str, ...]:
@@ -594,17 +613,19 @@ def _legs_of(source_onnx, leg: str) -> tuple[str, ...]:
 
 def export_refined(source_onnx, out_stem, params: np.ndarray, cfg: RefineConfig,
                    history: list[dict], continued: dict | None = None,
-                   meta_json: str | Path | None = None) -> tuple[Path, Path]:
+                   meta_json: str | Path | None = None,
+                   kept: list[dict] = ()) -> tuple[Path, Path]:
     """Write the refined policy: ONNX (checked against torch) and the JSON ``meta_json``
     (default: the source's; :func:`build_actor`) with
     ``refined_from`` (source, commit, leg, the residual, the settings, each generation's
     score and, for a continued refinement, ``continued_from``: the refined policy it went on
-    from, its generations and settings) and its evaluation cleared."""
+    from, its generations and settings; ``kept``: the other lifts' residuals in the graph, as
+    their own records) and its evaluation cleared."""
     from deploy.policy import PolicyMeta
     from policy_train.export import git_commit, onnx_bytes
     from policy_train.stand import apply_stand
 
-    meta, actor, res = build_actor(source_onnx, cfg.leg, 1, meta_json, cfg.velocity)
+    meta, actor, res = build_actor(source_onnx, cfg.leg, 1, meta_json, cfg.velocity, kept)
     D, b = unpack(params)
     res.set_residual(D, b)
     # the JSON's stand is kept, so its graph gets it too (derive --stand)
@@ -619,7 +640,8 @@ def export_refined(source_onnx, out_stem, params: np.ndarray, cfg: RefineConfig,
         "D": D.round(6).tolist(), "b": b.round(6).tolist(), "config": asdict(cfg),
         "generations": [{k: h[k] for k in ("generation", "seed", "score", "score_best",
                                            "score_mean")} for h in history],
-        **({"continued_from": continued} if continued else {})}
+        **({"continued_from": continued} if continued else {}),
+        **({"kept": list(kept)} if kept else {})}
     meta.update(name=name, onnx=f"{name}.onnx", commit=git_commit(), evaluation={},
                 created_utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
     meta.pop("evaluation_nominal", None)

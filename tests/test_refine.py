@@ -161,8 +161,6 @@ def test_refine_exports_resumes_and_is_no_warm_start(tmp_path):
 
 
 def test_a_refined_policy_goes_on_from_its_residual(tmp_path):
-    with pytest.raises(ValueError, match="FL's lifts, not RL's"):
-        refine(V22, tmp_path / "x", 1, RefineConfig(leg="RL"), tmp_path / "x.json")
     with pytest.raises(ValueError, match="unknown randomisation"):
         RefineConfig(dr={"shove": 1.0})
     cfg = RefineConfig(pairs=1, episodes=1, fail_cost=0.5, dr={"push_vel": 0.5})
@@ -188,6 +186,42 @@ def test_a_refined_policy_goes_on_from_its_residual(tmp_path):
     np.testing.assert_allclose(got, src + x[:, [3, 4, 5, 6, 7]] @ D.T + b, atol=1e-4)
     with pytest.raises(ValueError, match="refines tripod_go2_v22"):
         refine(V21, tmp_path / "q", 1, cfg, state, resume=True)
+
+
+def test_another_lifts_refinement_keeps_the_first_residual(tmp_path):
+    """Refining the rear lifts of a policy refined on its front ones: the front lifts' residual
+    stays in the graph as it was (``kept``), the rear lifts get their own, from zero, and a
+    further refinement of either goes on from its own and keeps the other."""
+    cfg = RefineConfig(leg="RL", pairs=1, episodes=1, seed=7)
+    onnx_path, json_path = refine(V22, tmp_path / "r", 1, cfg, tmp_path / "s.json",
+                                  log=lambda s: None)
+    rf = json.loads(json_path.read_text())["refined_from"]
+    rf22 = json.loads(V22.with_suffix(".json").read_text())["refined_from"]
+    assert rf["policy"] == V21.name and rf["leg"] == "RL" and rf["legs"] == ["RL", "RR"]
+    assert len(rf["generations"]) == 1 and "continued_from" not in rf  # from zero
+    assert [k["leg"] for k in rf["kept"]] == ["FL"] and rf["kept"][0]["D"] == rf22["D"]
+    x = np.random.default_rng(2).normal(0, 0.3, (3, 490)).astype(np.float32)
+    run = {p: ort.InferenceSession(str(p)) for p in (onnx_path, V22, V21)}
+    D, b = np.asarray(rf["D"]), np.asarray(rf["b"])
+    for value in (0.0, 0.25, 0.5, 0.75, 1.0):  # no lift, FL, FR, RL, RR
+        x[:, 48::49] = value
+        got, v22, v21 = (run[p].run(None, {"obs": x})[0] for p in (onnx_path, V22, V21))
+        if value < 0.6:  # no lift and the front lifts: v22's graph
+            np.testing.assert_allclose(got, v22, atol=1e-5)
+        elif value == 0.75:  # RL: v21's network plus the new residual
+            np.testing.assert_allclose(got, v21 + x[:, [3, 4, 5, 6, 7]] @ D.T + b, atol=1e-4)
+        else:  # RR, mirrored onto RL: changed by its mirror image, the front's residual off
+            assert np.abs(got - v21).max() > 1e-3 and np.abs(got - v22).max() > 1e-3
+    # the front lifts again: v22's residual goes on, the rear lifts' is kept (the network
+    # beside the refined policy, as in policies/)
+    for f in (V21, V21.with_suffix(".json")):
+        (tmp_path / f.name).write_bytes(f.read_bytes())
+    again = RefineConfig(pairs=1, episodes=1, seed=7)
+    _, j2 = refine(onnx_path, tmp_path / "f", 1, again, tmp_path / "f.json", log=lambda s: None)
+    rf2 = json.loads(j2.read_text())["refined_from"]
+    assert rf2["leg"] == "FL" and len(rf2["generations"]) == 41
+    assert rf2["continued_from"]["policy"] == onnx_path.name
+    assert [k["leg"] for k in rf2["kept"]] == ["RL"] and rf2["kept"][0]["D"] == rf["D"]
 
 
 @pytest.mark.parametrize(("extra", "hint"), [
