@@ -78,9 +78,9 @@ PRIV_SIZE = sum(n for _, n in PRIV_TERMS)
 
 
 def _columns(idx: np.ndarray) -> slice | np.ndarray:
-    """Column indices as a strided slice where they are evenly spaced (a view of the batch's
-    sensor rows, not a copy: the contact sensors lie every 4 columns, and copying them out
-    was most of the contacts' time each physics step), else the indices."""
+    """Column indices as a strided slice where they are evenly spaced (the contact sensors lie
+    every 4 columns: a view of the batch's sensor rows, read after every physics step, instead
+    of a copy), else the indices."""
     idx = np.asarray(idx, dtype=int)
     step = np.diff(idx) if len(idx) > 1 else np.ones(1, int)
     if len(idx) and step[0] > 0 and np.all(step == step[0]):
