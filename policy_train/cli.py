@@ -745,7 +745,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--generations", type=_count, default=40,
                    help="ES generations (each about a minute on 2 cores at the defaults)")
     r.add_argument("--leg", type=_leg, default="FL",
-                   help="the lift refined; legs the policy mirrors onto it follow (default FL)")
+                   help="the lift refined; legs the policy mirrors onto it follow, and a refined policy's residuals of other lifts stay in its graph as they are (default FL)")
     r.add_argument("--pairs", type=_positive, default=4, help="antithetic pairs per generation")
     r.add_argument("--episodes", type=_positive, default=24,
                    help="episodes per leg and candidate, the same draws for every candidate")

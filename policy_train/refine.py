@@ -17,7 +17,9 @@ command is the refined leg's::
 ``a`` is a change of the joint targets per policy step (``delta_target``), so ``D`` on the
 body's rate adds an attitude term to the targets, ``D`` on the tilt an integral one, and
 ``b`` a steady drift the policy must meet. Legs whose lifts the graph mirrors onto the refined
-leg's (``mirrored_legs``) get its mirror image.
+leg's (``mirrored_legs``) get its mirror image. A refined policy's residuals of other lifts
+stay in the graph, fixed (``refined_from.kept``): v41's rear lifts were refined over v32, whose
+front lifts keep theirs.
 
 With ``velocity`` the residual also reads the base's horizontal velocity ``v`` as the three
 stance legs' kinematics give it (:func:`stance_velocity_map`: their joint angles differenced

@@ -208,7 +208,8 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
     _training_like("body_imu", "training with the body IMU mounted 1-2 deg off about any axis "
                    "and a gyro bias of up to +-0.02 rad/s per axis (not in the standard ranges)",
                    imu_tilt_deg=(1.0, 2.0), gyro_bias=0.02),
-    # a robot has all of these at once: each at the lower half of its own scenario's range
+    # a robot has all of these at once: each at the lower half of its own scenario's range,
+    # the damping and armature as on Menagerie's joints (damped_joints: 2 and 0.01)
     _training_like("all_at_once", "training with every effect the standard ranges leave out, "
                    "each at the lower half of its own scenario's range, all at once: joint dry "
                    "friction 0.2-0.4 N m, damping 1-2 N m s/rad, armature 0.01 kg m^2, a floor "
