@@ -18,7 +18,7 @@
                                     on another model of the Go2: sim to sim)
   a2i-train compare A.json B.json  (two transfer runs on the same draws, episode by episode)
   a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD]
-                   [--t-r S] [--shift S|LEG=S[,LEG=S]] [--[no-]adapt]
+                   [--t-r S] [--periods N] [--shift S|LEG=S[,LEG=S]] [--[no-]adapt]
                                    (the same network with other deploy gains, excitation speed
                                     or time to shift the body before the lift, every leg's
                                     or some legs', or the lifted leg's tracking adapter)
@@ -214,11 +214,11 @@ def _export(a) -> int:
 def _derive(a) -> int:
     from policy_train.export import derive_policy
 
-    if (a.gains, a.lift_gains, a.t_r, a.shift, a.adapt, a.stand) == (None,) * 6:
-        raise SystemExit("a2i-train derive: give --gains, --lift-gains, --t-r, --shift, "
-                         "--[no-]adapt and/or --stand")
+    if (a.gains, a.lift_gains, a.t_r, a.periods, a.shift, a.adapt, a.stand) == (None,) * 7:
+        raise SystemExit("a2i-train derive: give --gains, --lift-gains, --t-r, --periods, "
+                         "--shift, --[no-]adapt and/or --stand")
     onnx_path, json_path = derive_policy(a.onnx, a.out, a.gains, a.lift_gains, a.t_r, a.shift,
-                                         a.adapt, a.stand)
+                                         a.adapt, a.stand, a.periods)
     print(f"wrote {onnx_path} and {json_path} (the network of {a.onnx})")
     return 0
 
@@ -720,6 +720,10 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--t-r", type=_number(0.05, 5.0, "must be in [0.05, 5) s"), default=None,
                    metavar="S", help="the excitation's time constant t_r (s), inside the range "
                    "the policy trained against; slower motions shake the tripod less")
+    g.add_argument("--periods", type=_count, default=None, metavar="N",
+                   help="the excitation's steady periods (8 t_r s each), no longer in all than "
+                   "the longest excitation the policy trained against; with a faster --t-r, "
+                   "more periods keep the record as long (more signal against the gyro noise)")
     g.add_argument("--shift", type=_shift, default=None, metavar="S|LEG=S[,LEG=S]",
                    help="the shift phase (s): how long the policy has, every foot down, to "
                    "move the body over the three it will stand on; at least the training's. "

@@ -248,7 +248,7 @@ def onnx_bytes(actor: torch.nn.Module, n_in: int) -> bytes:
 
 def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                   lift_gains=None, t_r=None, shift=None, adapt=None,
-                  stand=None) -> tuple[Path, Path]:
+                  stand=None, periods=None) -> tuple[Path, Path]:
     """Write ``<out_stem>.onnx`` (the source's network, byte for byte) and ``<out_stem>.json``
     (the source's, with other deploy gains or excitation speed) for a policy whose
     checkpoints are gone.
@@ -258,7 +258,10 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     joint or three, (hip, thigh, calf), the same on every leg; lift_gains: the lifted leg's,
     as :func:`export_policy`; t_r: the excitation's time constant (s, the JSON's
     ``lift_schedule``), inside the range the policy was trained against (its
-    ``train_config``'s ``t_r_range``: it never balanced against other speeds); shift: the
+    ``train_config``'s ``t_r_range``: it never balanced against other speeds); periods: the
+    excitation's steady periods (the JSON's ``lift_schedule``; with a faster ``t_r``, more of
+    them keep the record as long), no longer in all (``periods`` x 8 ``t_r``) than the longest
+    excitation the training played (its most ``train_periods`` at its slowest ``t_r``); shift: the
     shift phase (s, the JSON's ``lift_schedule``: the policy alone, every foot down, moving the
     body over the three feet it will stand on), at least the training's ``shift_s`` (the policy
     never lifted sooner) and at most 5 s: one value for every leg, or {leg: s} for those legs'
@@ -268,7 +271,7 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     policy may have it); stand: the JSON's ``stand`` (:func:`policy_train.stand.stand_spec`,
     ``home`` or ``hold``): what the graph plays while no leg is lifted, instead of the network's
     own four-leg stand (the only change to the ONNX: nodes after the network).
-    The JSON's ``derived_from`` names the source, its commit, the gains, t_r, shift (and
+    The JSON's ``derived_from`` names the source, its commit, the gains, t_r, periods, shift (and
     ``shift_by_leg``), adapt and stand it had; its evaluation figures are dropped (they were
     measured with the source's settings).
     ValueError on a source that is not an exported policy or on gains deploy refuses."""
@@ -288,6 +291,7 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     meta["derived_from"] = {"policy": src.name, "commit": meta.get("commit"),
                             "kp": meta["kp"], "kd": meta["kd"],
                             "lift_gains": [sched.kp, sched.kd], "t_r": sched.t_r,
+                            "periods": sched.periods,
                             "shift": sched.shift,
                             **({"shift_by_leg": sched.shift_by_leg} if sched.shift_by_leg
                                else {}),
@@ -316,6 +320,18 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
             raise ValueError(f"t_r {t_r} s is outside the {lo}-{hi} s the policy was trained "
                              "against")
         meta["lift_schedule"] = {**meta["lift_schedule"], "t_r": float(t_r)}
+    if periods is not None:
+        env = meta["train_config"]["env"]
+        longest = (max(np.atleast_1d(env.get("train_periods", sched.periods)))
+                   * max(env.get("t_r_range", (sched.t_r, sched.t_r))))
+        t_r_now = meta["lift_schedule"]["t_r"]
+        if not (int(periods) == periods and periods >= 1):
+            raise ValueError(f"periods must be a whole number >= 1, got {periods}")
+        if periods * t_r_now > longest + 1e-9:
+            raise ValueError(f"{periods} periods at t_r {t_r_now:g} s last "
+                             f"{8 * periods * t_r_now:g} s, longer than the {8 * longest:g} s "
+                             "excitation the policy was trained against")
+        meta["lift_schedule"] = {**meta["lift_schedule"], "periods": int(periods)}
     if shift is not None:
         lo = meta["train_config"]["env"].get("shift_s", sched.shift)
         by_leg = dict(shift) if isinstance(shift, Mapping) else {"": shift}

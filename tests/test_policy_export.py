@@ -471,6 +471,37 @@ def test_derive_sets_the_excitation_speed_within_the_trained_range(exported, tmp
     assert "outside" in capsys.readouterr().err and not (tmp_path / "h.json").exists()
 
 
+def test_derive_sets_the_periods_no_longer_than_trained(exported, tmp_path, capsys):
+    """`derive --t-r T --periods N`: a faster excitation with more periods, in the JSON's lift
+    schedule (the evaluation's plans last N periods of 8 T), the source's periods named in
+    ``derived_from``; an excitation longer than the training's longest (its most periods at
+    its slowest t_r) is refused, nothing written."""
+    from policy_train.cli import main
+    from policy_train.evaluate import evaluation_env
+
+    d, _ = exported
+    src = json.loads((d / "pol.json").read_text())
+    env = src["train_config"]["env"]
+    lo, hi = env["t_r_range"]
+    most = max(np.atleast_1d(env["train_periods"]))
+    t_r = lo
+    n = int(np.floor(most * hi / t_r))  # the most periods that fit at the fastest t_r
+    assert n > src["lift_schedule"]["periods"]
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"),
+                 "--t-r", str(t_r), "--periods", str(n)]) == 0
+    meta = json.loads((tmp_path / "g.json").read_text())
+    assert meta["lift_schedule"] == {**src["lift_schedule"], "t_r": t_r, "periods": n}
+    assert meta["derived_from"]["periods"] == src["lift_schedule"]["periods"]
+    more, _ = evaluation_env(meta, ("FL",), 1, seed=1, nominal=True)
+    base, _ = evaluation_env(src, ("FL",), 1, seed=1, nominal=True)
+    ramps = base.lift_dur[0, 3] - 8 * src["lift_schedule"]["t_r"] * src["lift_schedule"]["periods"]
+    assert more.lift_dur[0, 3] == pytest.approx(ramps + 8 * t_r * n, abs=0.05)
+    capsys.readouterr()
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "h"),
+                 "--t-r", str(t_r), "--periods", str(n + 1)]) == 2
+    assert "trained against" in capsys.readouterr().err and not (tmp_path / "h.json").exists()
+
+
 def _derive_shift(d: Path, tmp_path: Path, shift: str) -> tuple[dict, float, dict]:
     """`derive --shift SHIFT` of the exported policy in ``d`` to ``tmp_path / "g"``: (the
     source's JSON, its training's shift, the derived JSON)."""
