@@ -20,7 +20,7 @@
   a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD]
                    [--t-r S] [--periods N] [--shift S|LEG=S[,LEG=S]] [--[no-]adapt]
                                    (the same network with other deploy gains, excitation speed
-                                    or time to shift the body before the lift, every leg's
+                                    or length, or time to shift the body before the lift, every leg's
                                     or some legs', or the lifted leg's tracking adapter)
   a2i-train refine policies/NAME.onnx --out policies/OTHER [--generations 40] [--leg FL]
                    [--pairs 4] [--episodes 24] [--fail-cost 0.1] [--dr FIELD=VALUE ...]
