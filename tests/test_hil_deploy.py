@@ -10,6 +10,9 @@ missing. Short excitations (1 period) keep the suite fast; users get the policy'
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
+import hashlib
 import itertools
 import json
 
@@ -85,20 +88,43 @@ def check_against_truth(result, robot, out, legs):
 HUNG_SEED = 11
 
 
+@contextlib.contextmanager
+def solver_input_digests():
+    """{leg: sha256 of every array SOLVE handed the solver} for the legs solved meanwhile."""
+    import deploy.solve as solve_mod
+
+    digests: dict[str, str] = {}
+    extract = solve_mod.extract_leg_data
+
+    def recording(snapshot, leg, *a, **k):
+        data = extract(snapshot, leg, *a, **k)
+        h = hashlib.sha256()
+        for f in dataclasses.fields(data):
+            h.update(np.ascontiguousarray(getattr(data, f.name)).tobytes())
+        digests[leg] = h.hexdigest()
+        return data
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(solve_mod, "extract_leg_data", recording)
+        yield digests
+
+
 @pytest.fixture(scope="module")
 def hung_all_legs(policies, tmp_path_factory):
-    """The hung robot calibrating all four legs in turn: (result, stopped robot, out dir)."""
+    """The hung robot calibrating all four legs in turn: (result, stopped robot, out dir,
+    digests of each leg's solver inputs)."""
     out = tmp_path_factory.mktemp("hung_all_legs")
     robot = start_mock(seed=HUNG_SEED)
     try:
-        result = deploy(robot, policies["hold"], ["FL", "FR", "RL", "RR"], out)
+        with solver_input_digests() as inputs:
+            result = deploy(robot, policies["hold"], ["FL", "FR", "RL", "RR"], out)
     finally:
         robot.stop()
-    return result, robot, out
+    return result, robot, out, inputs
 
 
 def test_hung_robot_all_legs_recover_mounting_and_every_lowstate_recorded(hung_all_legs):
-    result, robot, out = hung_all_legs
+    result, robot, out, _ = hung_all_legs
     # Both counts read once the robot's thread has stopped: an idle repeat of the last
     # LowState can come between two reads made while it runs (CI once counted 1 too few).
     published, repeated = robot.lowstates_published, robot.lowstates_repeated
@@ -241,13 +267,14 @@ def test_lockstep_mock_waits_for_a_slow_imu_reader_and_drops_no_frame(policies, 
 def test_lockstep_runs_do_not_depend_on_how_fast_the_host_solves(policies, hung_all_legs,
                                                                   tmp_path, monkeypatch):
     """The all-leg run's seed again, its first two legs with a solver 1 s slower: the robot
-    waits for it, so the second leg starts from the same state and both legs come out bit for
-    bit as in that run (a leg's result depends on nothing after its own motion)."""
+    waits for it, so the second leg starts from the same state, both legs hand the solver the
+    same arrays and come out bit for bit as in that run (a leg's result depends on nothing
+    after its own motion)."""
     import time
 
     import deploy.solve as solve_mod
 
-    _, _, fast_out = hung_all_legs
+    _, _, fast_out, fast_inputs = hung_all_legs
     solve_leg = solve_mod.solve_leg
 
     def slow_solve_leg(*a, **k):
@@ -257,15 +284,27 @@ def test_lockstep_runs_do_not_depend_on_how_fast_the_host_solves(policies, hung_
     monkeypatch.setattr(solve_mod, "solve_leg", slow_solve_leg)
     robot = start_mock(seed=HUNG_SEED)
     try:
-        result = deploy(robot, policies["hold"], ["FL", "FR"], tmp_path)
+        with solver_input_digests() as slow_inputs:
+            result = deploy(robot, policies["hold"], ["FL", "FR"], tmp_path)
     finally:
         robot.stop()
     assert [o.ok for o in result.outcomes] == [True, True]
+    # First what reached the solver (the recording, cut to the window), then what it made of it:
+    # a failure says which of the two was not reproduced.
+    for leg in ("FL", "FR"):
+        assert slow_inputs[leg] == fast_inputs[leg], (leg, "solver inputs")
     for leg in ("FL", "FR"):
         slow = json.loads((tmp_path / f"{leg}.json").read_text())
         fast = json.loads((fast_out / f"{leg}.json").read_text())
         for key in ("rotation_matrix", "time_offset_s"):
-            assert slow[key] == fast[key], (leg, key)
+            assert slow[key] == fast[key], (leg, key, "from the same inputs, ulps apart:", _ulps(
+                slow[key], fast[key]))
+
+
+def _ulps(a, b) -> int:
+    """Largest distance in units in the last place between two equally shaped float arrays."""
+    a, b = (np.asarray(x, dtype=np.float64).view(np.int64) for x in (a, b))
+    return int(np.max(np.abs(a - b)))
 
 
 def test_l2_b_mid_motion_damps_within_one_tick(policies, tmp_path):
