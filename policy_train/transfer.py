@@ -479,6 +479,8 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
     legs = list(dict.fromkeys(r.leg for r in results))
     n = max(1, len(results) // max(1, len(summ) * len(legs)))
     leg_arg = "" if legs == list(LEGS) else f" --legs {','.join(legs)}"
+    # a run of some scenarios only names them: the line then re-runs what the page holds
+    scen_arg = "" if list(summ) == list(SCENARIOS) else f" --scenarios {','.join(summ)}"
     model_arg = "" if model is None else f" --model-xml {model['path']}"
     tip_arg = "" if max_tip is None else f" --max-tip {max_tip}"
     limits = (None if max_tip is None else f"{max_tip.lift:g} deg" if max_tip.lift == max_tip.hold
@@ -495,8 +497,8 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
     lines = [
         "# Tripod policy transfer: a second simulator, perturbations not trained for",
         "",
-        (f"Produced by `a2i-train transfer {policy} --episodes {n} --seed {seed}{leg_arg}"
-        f"{model_arg}{tip_arg}` (`policy_train/transfer.py`): each episode is one calibration of one "
+        (f"Produced by `a2i-train transfer {policy}{scen_arg} --episodes {n} --seed {seed}"
+        f"{leg_arg}{model_arg}{tip_arg}` (`policy_train/transfer.py`): each episode is one calibration of one "
         "leg by the on-board runner on `sim.go2` (1 kHz, free base on the floor: the mock "
         f"robot's simulator, not the training environment) with {on_model}, and the "
         "scenario's perturbations drawn afresh. Success: no fall and no body but a foot on the "

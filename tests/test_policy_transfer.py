@@ -256,6 +256,8 @@ def test_push_summary_puts_each_fall_down_to_the_push_before_it():
     assert x["held_min_cm"] == pytest.approx(-0.6)
     page = render_markdown(eps, "p.onnx", 1)
     assert "| shoves | 6 | 3 (2) | 1 / 1 / 2 | -0.6 |" in page
+    # not every scenario ran: the line that produced the page names the ones that did
+    assert "`a2i-train transfer p.onnx --scenarios shoves,nominal --episodes" in page
     assert "| nominal |" in page.split("capture region")[0]
     assert "| nominal |" not in page.split("capture region")[1]
 
