@@ -584,14 +584,19 @@ def write_results(results: list[EpisodeResult], out_md, policy: str, seed: int,
 
 def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None, log=print,
               model_xml=None, max_tip=None):
-    """:func:`run_transfer` with a progress line about every 10 % (for the CLI)."""
+    """:func:`run_transfer` with a progress line every 10 % or every minute, whichever
+    comes first, and the time left at the rate so far (for the CLI)."""
     t0 = time.time()
-    last = [0.0]
+    last = [0.0, t0]  # fraction done and time at the last line
 
     def progress(done, total):
-        if done == total or done / total - last[0] >= 0.1:
-            last[0] = done / total
-            log(f"  {done}/{total} episodes, {time.time() - t0:.0f} s")
+        now = time.time()
+        # on a slow machine 10 % of a long run is many minutes: a silent run looks hung
+        if done == total or done / total - last[0] >= 0.1 or now - last[1] >= 60.0:
+            last[:] = [done / total, now]
+            left = "" if done in (0, total) else \
+                f", about {(now - t0) * (total - done) / done:.0f} s left"
+            log(f"  {done}/{total} episodes, {now - t0:.0f} s{left}")
 
     res = run_transfer(onnx_path, scenarios, legs, episodes, seed, workers, periods, progress,
                        model_xml, max_tip)

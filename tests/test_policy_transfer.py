@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -260,6 +261,28 @@ def test_push_summary_puts_each_fall_down_to_the_push_before_it():
     assert "`a2i-train transfer p.onnx --scenarios shoves,nominal --episodes" in page
     assert "| nominal |" in page.split("capture region")[0]
     assert "| nominal |" not in page.split("capture region")[1]
+
+
+def test_progress_speaks_every_minute_on_a_slow_run_and_says_what_is_left(monkeypatch):
+    from policy_train import transfer
+
+    clock = iter([0.0, 30.0, 70.0, 80.0, 100.0, 1000.0, 1000.0])  # t0, one per call, the end
+    # the module's own clock only: pytest's goes on
+    monkeypatch.setattr(transfer, "time", SimpleNamespace(time=lambda: next(clock)))
+
+    def fake_run(*args):
+        progress = args[7]
+        for done in (1, 2, 3, 7, 40):
+            progress(done, 40)
+        return []
+
+    monkeypatch.setattr(transfer, "run_transfer", fake_run)
+    lines = []
+    transfer.timed_run("p.onnx", ["nominal"], ["FL"], 40, 1, 1, log=lines.append)
+    # 1/40 (30 s): under 10 % and a minute; 2/40 speaks by the minute (70 s); 3/40 does not
+    # (10 s and 2.5 % on); 7/40 by the 10 % (12.5 % on, 30 s later); 40/40 always, nothing left
+    assert lines == ["  2/40 episodes, 70 s, about 1330 s left",
+                     "  7/40 episodes, 100 s, about 471 s left", "  40/40 episodes, 1000 s"]
 
 
 @pytest.fixture(scope="module")
