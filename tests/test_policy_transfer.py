@@ -342,14 +342,18 @@ def test_cli_writes_page_and_episodes(tmp_path, capsys):
     assert "| nominal |" in page and "RR" in page
     rows = json.loads(out.with_suffix(".json").read_text())["episodes"]
     assert len(rows) == 1 and rows[0]["leg"] == "RR" and rows[0]["success"] is True
-    assert f"`a2i-train transfer {POLICY} --episodes 1 --seed 1 --legs RR`" in page
+    # one scenario of all: the line names it, and re-runs what the page holds
+    assert (f"`a2i-train transfer {POLICY} --scenarios nominal --episodes 1 --seed 1 --legs RR`"
+            in page)
     # a scenario added to the page: both rows, as one command over both would write them
     rc = main(["transfer", str(POLICY), "--scenarios", "slope", "--legs", "RR", "--episodes",
                "1", "--workers", "1", "--out", str(out), "--append"])
     assert rc == 0
     rows = json.loads(out.with_suffix(".json").read_text())["episodes"]
     assert [r["scenario"] for r in rows] == ["nominal", "slope"]
-    assert "| nominal |" in out.read_text() and "| slope |" in out.read_text()
+    page = out.read_text()
+    assert "| nominal |" in page and "| slope |" in page
+    assert f"`a2i-train transfer {POLICY} --scenarios nominal,slope --episodes 1" in page
     # a page of another seed is refused before anything runs
     rc = main(["transfer", str(POLICY), "--scenarios", "slope", "--legs", "RR", "--episodes",
                "1", "--seed", "2", "--out", str(out), "--append"])
