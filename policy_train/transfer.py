@@ -310,9 +310,11 @@ def _job(args) -> EpisodeResult:
 
 
 def model_identity(model_xml) -> dict | None:
-    """{"path", "sha256"} of the model ``model_xml`` names as the simulator runs it (the hash
-    of the compiled model, so that an included file or a changed adaptation changes it); None
-    for the URDF's. ValueError (one line) if the file cannot be made into a Go2 model."""
+    """{"path", "sha256", "mujoco"} of the model ``model_xml`` names as the simulator runs it
+    (the hash of the compiled model, so that an included file or a changed adaptation changes
+    it; "mujoco": the version that compiled it, since another MuJoCo saves the same model to
+    other bytes); None for the URDF's. ValueError (one line) if the file cannot be made into a
+    Go2 model."""
     import hashlib
     import tempfile
     from pathlib import Path
@@ -328,7 +330,7 @@ def model_identity(model_xml) -> dict | None:
         f = Path(d) / "model.mjb"
         mujoco.mj_saveModel(m, str(f), None)
         digest = hashlib.sha256(f.read_bytes()).hexdigest()
-    return {"path": str(model_xml), "sha256": digest}
+    return {"path": str(model_xml), "sha256": digest, "mujoco": mujoco.__version__}
 
 
 def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int = 1,
@@ -493,7 +495,8 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
              "called off fails")
     on_model = ("the Go2 model built from the URDF" if model is None else
                 f"the Go2 model of `{model['path']}` (compiled as the simulator runs it: sha256 "
-                f"{model['sha256'][:16]}; `sim/external_model.py`) instead of the URDF's")
+                f"{model['sha256'][:16]}{', MuJoCo ' + model['mujoco'] if 'mujoco' in model else ''}; "
+                "`sim/external_model.py`) instead of the URDF's")
     lines = [
         "# Tripod policy transfer: a second simulator, perturbations not trained for",
         "",
@@ -634,8 +637,11 @@ def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResul
     per = {(r.scenario, r.leg) for r in old}
     old_n = len(old) // max(1, len(per))
 
-    def _model(m):
-        return "the URDF's" if m is None else f"{m['path']} ({m['sha256'][:16]})"
+    def _model(m):  # pages before the version was recorded have none
+        if m is None:
+            return "the URDF's"
+        version = f", MuJoCo {m['mujoco']}" if "mujoco" in m else ""
+        return f"{m['path']} ({m['sha256'][:16]}{version})"
 
     old_model, new_model = meta.get("model"), model
     same_model = (old_model is None) == (new_model is None) and (

@@ -144,6 +144,7 @@ def test_transfer_runs_on_it_and_keeps_its_pages_apart(third_party, tmp_path, ca
     assert main(args + ["--model-xml", str(third_party)]) == 0
     meta = json.loads(out.with_suffix(".json").read_text())
     assert meta["model"]["path"] == str(third_party) and len(meta["model"]["sha256"]) == 64
+    assert meta["model"]["mujoco"] == mujoco.__version__
     assert f"--model-xml {third_party}`" in out.read_text()
     urdf = tmp_path / "u.md"
     assert main(args[:-1] + [str(urdf)]) == 0

@@ -376,6 +376,25 @@ def test_merge_results_adds_and_replaces_scenarios_in_their_order():
             merge_results(page, new, *args)
 
 
+def test_a_page_of_another_mujoco_is_refused_by_the_version_that_saved_its_model():
+    """The model's hash is of the model as MuJoCo saves it, so another MuJoCo changes it with
+    the physics unchanged: the refusal names both versions, so the reason is plain. A page
+    written before the version was recorded still takes episodes of its own model's hash."""
+    old = _run({"weak": [True, True]})
+    was = {"path": "go2/scene.xml", "sha256": "a" * 64, "mujoco": "4.0.0"}
+    page = ({"policy": "p.onnx", "seed": 1, "elapsed_s": 1.0, "model": was}, old)
+    now = dict(was, sha256="b" * 64, mujoco="4.0.1")
+    with pytest.raises(ValueError, match=r"\(aaaaaaaaaaaaaaaa, MuJoCo 4\.0\.0\), not "
+                                         r"go2/scene\.xml \(bbbbbbbbbbbbbbbb, MuJoCo 4\.0\.1\)"):
+        merge_results(page, [], "p.onnx", 1, ["FL"], 2, now)
+    unversioned = {k: v for k, v in was.items() if k != "mujoco"}
+    merged = merge_results(({**page[0], "model": unversioned}, old), [], "p.onnx", 1, ["FL"], 2,
+                           was)
+    assert len(merged) == 2
+    assert "sha256 aaaaaaaaaaaaaaaa, MuJoCo 4.0.0;" in render_markdown(old, "p.onnx", 1,
+                                                                       model=was)
+
+
 def test_with_the_tip_guard_a_called_off_lift_is_lifted_again_and_reported():
     """--max-tip plays deploy's tip guard: a limit no lift keeps calls the first lift off, the
     episode's second lift (1 s more shift) is called off too, and the robot stays up."""
