@@ -333,6 +333,12 @@ def model_identity(model_xml) -> dict | None:
     return {"path": str(model_xml), "sha256": digest, "mujoco": mujoco.__version__}
 
 
+def _saved_by(model: dict) -> str:
+    """", MuJoCo X.Y.Z" for a :func:`model_identity` that records its MuJoCo; "" for one
+    from a page written before the version was recorded."""
+    return f", MuJoCo {model['mujoco']}" if "mujoco" in model else ""
+
+
 def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int = 1,
                  workers: int | None = None, periods: int | None = None,
                  progress=None, model_xml: str | None = None,
@@ -495,8 +501,8 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
              "called off fails")
     on_model = ("the Go2 model built from the URDF" if model is None else
                 f"the Go2 model of `{model['path']}` (compiled as the simulator runs it: sha256 "
-                f"{model['sha256'][:16]}{', MuJoCo ' + model['mujoco'] if 'mujoco' in model else ''}; "
-                "`sim/external_model.py`) instead of the URDF's")
+                f"{model['sha256'][:16]}{_saved_by(model)}; `sim/external_model.py`) instead of "
+                "the URDF's")
     lines = [
         "# Tripod policy transfer: a second simulator, perturbations not trained for",
         "",
@@ -637,11 +643,8 @@ def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResul
     per = {(r.scenario, r.leg) for r in old}
     old_n = len(old) // max(1, len(per))
 
-    def _model(m):  # pages before the version was recorded have none
-        if m is None:
-            return "the URDF's"
-        version = f", MuJoCo {m['mujoco']}" if "mujoco" in m else ""
-        return f"{m['path']} ({m['sha256'][:16]}{version})"
+    def _model(m):
+        return "the URDF's" if m is None else f"{m['path']} ({m['sha256'][:16]}{_saved_by(m)})"
 
     old_model, new_model = meta.get("model"), model
     same_model = (old_model is None) == (new_model is None) and (
