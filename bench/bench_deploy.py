@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from deploy.hold_policy import write_hold_policy
 from deploy.policy import PolicyMeta, default_policy_path
 from deploy.runtime import DeployConfig, DeployRunner, rss_bytes
-from deploy.session import State
+from deploy.session import SessionConfig, State
 from deploy.simulate import start_sim, truth_tuples
 from deploy.supervisor import SupervisorConfig
 
@@ -90,6 +90,8 @@ def main() -> int:
                        connect=[sim.connect], imus=sim.imus, clock="realtime",
                        record_seconds=args.record_seconds, truth=truth_tuples(sim.truth),
                        write_mcap=False, max_ticks=n_ticks,
+                       # hung up, the body cannot move over the tripod: no lift gate
+                       session=SessionConfig(lift_gate=None) if extra else SessionConfig(),
                        supervisor=SupervisorConfig(stale_ticks=args.stale_ticks))
     t0 = time.monotonic()
     try:

@@ -23,6 +23,7 @@ import time
 from pathlib import Path
 
 from calib.joints import LEGS, check_leg
+from deploy.lift_gate import DEFAULT_GATE, GateLimits
 from deploy.tip_guard import DEFAULT_TIP_LIMITS, TipLimits
 
 __all__ = ["main", "parse_imu"]
@@ -98,6 +99,12 @@ def _parser() -> argparse.ArgumentParser:
                         "when the lift began: LIFT while the foot leaves the floor, HOLD while "
                         "the leg swings to the excitation's start (one number: both; 0: never; "
                         f"default {DEFAULT_TIP_LIMITS}; see deploy/tip_guard.py)")
+    p.add_argument("--lift-gate", default=str(DEFAULT_GATE), metavar="MM[,S]",
+                   help="lift the foot only once the centre of mass, estimated from the joints "
+                        "and the body IMU, stands MM mm inside the triangle of the other three "
+                        "feet, holding the shift up to S s longer for it; a lift it cannot "
+                        "start is called off and tried once more, as --max-tip's (off: lift on "
+                        f"time; default {DEFAULT_GATE}; see deploy/lift_gate.py)")
     p.add_argument("--record-seconds", type=float, default=180.0, metavar="S",
                    help="recorder history kept in memory and saved as MCAP (default 180)")
     p.add_argument("--force", action="store_true",
@@ -144,6 +151,10 @@ def main(argv: list[str] | None = None) -> int:
             max_tip = TipLimits.parse(args.max_tip)
         except ValueError as e:
             raise ValueError(f"--max-tip: {e}") from None
+        try:
+            lift_gate = GateLimits.parse(args.lift_gate)
+        except ValueError as e:
+            raise ValueError(f"--lift-gate: {e}") from None
     except ValueError as e:
         print(f"a2i-deploy: error: {e}", file=sys.stderr)
         return 2
@@ -208,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
                        clock=clock, record_seconds=args.record_seconds, force=args.force,
                        truth=truth, session_metadata=session_meta, progress=_say,
                        session=SessionConfig(replant=not args.no_replant,
-                                             max_tip=max_tip))
+                                             max_tip=max_tip, lift_gate=lift_gate))
     runner = None
     try:
         try:

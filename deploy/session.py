@@ -15,6 +15,10 @@ States and their exits (every transition is reported with its cause)::
               A lift or hold that tips the body past ``max_tip`` from its tilt when the
               lift began aborts -> LOWER (``deploy.tip_guard``); the leg is then lifted
               once more, after REPLANT, with its shift ``tip_retry_shift_s`` longer.
+              The foot leaves the floor only once the centre of mass, estimated from the
+              joints and the body IMU, stands ``lift_gate`` inside the stance triangle: the
+              shift is held longer for it, and a margin that does not come aborts the same
+              way (``deploy.lift_gate``).
     CALIBRATE the excitation plan on the lifted leg; its span is the recording window of SOLVE.
               -> LOWER when it ends; a failed foot IMU aborts -> LOWER (no result).
     LOWER     the schedule's lower phase, then ``lower_settle_s`` of the policy alone (none by
@@ -56,7 +60,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from calib.joints import EFFORT_LIMIT, LIE_POSE_LEG, check_leg, full_pose, sdk_indices
+from calib.joints import (
+    EFFORT_LIMIT,
+    LEGS,
+    LIE_POSE_LEG,
+    check_leg,
+    full_pose,
+    sdk_indices,
+    sdk_to_model,
+)
+from calib.support import go2_support
+from deploy.lift_gate import DEFAULT_GATE, GateLimits, LiftGate
 from deploy.lift_schedule import COMMANDS_PER_TICK, LegTarget, abort_targets
 from deploy.observation import build_observation, projected_gravity
 from deploy.supervisor import DAMP_KD, SafetySupervisor
@@ -120,6 +134,10 @@ class SessionConfig:
     # a lift the tip guard called off is tried once more, after REPLANT, with its shift this
     # much longer (s); None: not tried again
     tip_retry_shift_s: float | None = RETRY_SHIFT_S
+    # the foot leaves the floor only once the estimated centre of mass stands this far inside
+    # the stance triangle, the shift held up to this much longer for it (deploy.lift_gate,
+    # which says where the numbers come from; a2i-deploy --lift-gate); None: lift on time
+    lift_gate: GateLimits | None = DEFAULT_GATE
     damp_kd: float = DAMP_KD
     # LowCmd_ frames per tick. The motors hold each frame's target, so a lifted leg whose
     # target moved once per 20 ms tick lagged its plan in a 20 ms staircase: at its kp 80 that
@@ -130,6 +148,7 @@ class SessionConfig:
     def __post_init__(self) -> None:
         # a bad limit is refused here, not at the first lift; a number or a pair is taken too
         object.__setattr__(self, "max_tip", TipLimits.of(self.max_tip))
+        object.__setattr__(self, "lift_gate", GateLimits.of(self.lift_gate))
         r = self.tip_retry_shift_s
         if r is not None and not (isinstance(r, (int, float)) and math.isfinite(r) and r > 0):
             raise ValueError(f"tip_retry_shift_s must be a positive number of s or None, got {r!r}")
@@ -257,7 +276,9 @@ class Session:
         self._adapter: TrackingAdapter | None = None  # the lifted leg's, where the schedule's adapt
         self._adapted = np.zeros(3)
         self._tip = TipGuard(self.cfg.max_tip)
-        self._tipped = False  # this lift was called off by the tip guard
+        self._tipped = False  # this lift was called off by the tip guard or the lift gate
+        self._gate = LiftGate(self.cfg.lift_gate)
+        self._support = go2_support() if self.cfg.lift_gate is not None else None
         self._retry: LegOutcome | None = None  # a tipped lift's outcome, to be tried again
         self.lie_pose = full_pose(LIE_POSE_LEG, order="sdk")
         self.phase = ""
@@ -478,6 +499,7 @@ class Session:
         self._adapter = TrackingAdapter(sched.kp, sched.kd) if sched.adapt else None
         self._adapted = np.zeros(3)  # the adapter's torque in the frame the motors hold
         self._tip.reset()
+        self._gate.reset()
         self._stance_used = True
         self.phase = ""
         self._k_lift = self.k + 1  # the lift command is given at TRIPOD's first tick
@@ -615,9 +637,23 @@ class Session:
             return self._lower_now(inp)
         sched = self.meta.schedule
         t = self._lift_time()
+        gated = None
+        if self._support is not None and self._q_start is None \
+                and sched.phase(self.leg, t + self._frame_offsets()[-1]) != "shift":
+            gated = self._gate.check(self._stance_margin(inp), self.dt)
+            if gated != "go":  # this tick stays in the shift
+                self._k_lift += 1
+                t = self._lift_time()
         cmd = self._policy_command(inp, self.leg, self._schedule_targets(self.leg, t, inp))
         if self.state is State.DAMP:
             return cmd
+        if gated not in (None, "go", "wait"):
+            self._tipped = True  # tried again as a tipped lift is
+            self._abort_leg(gated)
+            return cmd
+        if gated == "go" and self._gate.waited_s > 0:
+            log.warning("%s: shift held %.2f s longer for the centre of mass", self.leg,
+                        self._gate.waited_s)
         tipped = self._tip.check(self.phase, inp.quat)
         if tipped is not None:
             self._tipped = True
@@ -635,6 +671,15 @@ class Session:
             self.enter_damp("TRIPOD timeout")
             return self._damp_command()
         return cmd
+
+    def _stance_margin(self, inp: TickInput) -> float:
+        """m, the estimated centre of mass's margin in the lifted leg's stance triangle
+        (:meth:`calib.support.SupportModel.margin`); -inf without the body IMU's attitude."""
+        if inp.quat is None:
+            return -math.inf
+        return self._support.margin(sdk_to_model(np.asarray(inp.q, dtype=float)),
+                                    projected_gravity(inp.quat),
+                                    [g for g in LEGS if g != self.leg])
 
     def _calibrate(self, inp: TickInput, combos) -> Command:
         if self._abort:

@@ -269,14 +269,15 @@ def _transfer(a) -> int:
         page = load_results(Path(a.out).with_suffix(".json"))
         run_legs = a.legs or json.loads(Path(a.onnx).with_suffix(".json").read_text()).get(
             "legs", list(LEGS))
-        merge_results(page, [], a.onnx, a.seed, run_legs, a.episodes, model, a.max_tip)
+        merge_results(page, [], a.onnx, a.seed, run_legs, a.episodes, model, a.max_tip,
+                      a.lift_gate)
     n = a.episodes * len(a.scenarios) * len(a.legs or (1, 1, 1, 1))
     on = "" if model is None else f" on {a.model_xml}"
     print(f"transfer: {a.onnx}{on}, scenarios {', '.join(a.scenarios)}, about {n} episodes",
           flush=True)
     res, elapsed = timed_run(a.onnx, a.scenarios, a.legs, a.episodes, a.seed, a.workers,
                              log=lambda s: print(s, flush=True), model_xml=a.model_xml,
-                             max_tip=a.max_tip)
+                             max_tip=a.max_tip, lift_gate=a.lift_gate)
     for s, x in summarise(res).items():
         legs = " ".join(f"{g} {100 * v:.0f} %" for g, v in x["legs"].items())
         print(f"{s:15s} success {100 * x['success']:5.1f} % ({legs}); rate "
@@ -285,9 +286,9 @@ def _transfer(a) -> int:
     if not a.no_write:
         if page is not None:
             res = merge_results(page, res, a.onnx, a.seed, run_legs, a.episodes, model,
-                                a.max_tip)
+                                a.max_tip, a.lift_gate)
             elapsed += page[0]["elapsed_s"] or 0.0
-        write_results(res, a.out, a.onnx, a.seed, elapsed, model, a.max_tip)
+        write_results(res, a.out, a.onnx, a.seed, elapsed, model, a.max_tip, a.lift_gate)
         print(f"wrote {a.out} and {Path(a.out).with_suffix('.json')}")
     return 0
 
@@ -368,6 +369,16 @@ def _tip_limits(text: str):
 
     try:
         return TipLimits.parse(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _lift_gate(text: str):
+    """argparse type: deploy's lift gate, "MM[,S]" ("off": off)."""
+    from deploy.lift_gate import GateLimits
+
+    try:
+        return GateLimits.parse(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
 
@@ -836,6 +847,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="play deploy's tip guard with these limits, deg, as a2i-deploy "
                         "--max-tip (e.g. 5,8, deploy's default; one number: both phases; "
                         "default: off, the policy alone)")
+    x.add_argument("--lift-gate", type=_lift_gate, default=None, metavar="MM[,S]",
+                   help="play deploy's lift gate, as a2i-deploy --lift-gate: the foot leaves "
+                        "the floor once the estimated centre of mass stands MM mm inside the "
+                        "stance triangle, the shift held up to S s longer for it (e.g. 20,2, "
+                        "deploy's default; default: off, the lift on time)")
     c = sub.add_parser("compare", help="two transfer runs of the same seed, paired episode by "
                                        "episode (which policy holds more of the same draws)")
     c.add_argument("episodes_files", nargs=2, metavar="EPISODES_JSON",

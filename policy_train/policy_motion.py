@@ -47,6 +47,8 @@ from calib.joints import (
     sdk_indices,
     sdk_to_model,
 )
+from calib.support import go2_support
+from deploy.lift_gate import LiftGate
 from deploy.lift_schedule import (
     COMMANDS_PER_TICK,
     PHASES,
@@ -197,6 +199,7 @@ def run_policy_a2i(
     model_xml: str | None = None,
     adapt: bool | None = None,
     max_tip=None,
+    lift_gate=None,
     extra_shift_s: float = 0.0,
 ) -> tuple[MotionRun | None, RunHealth]:
     """The A2I calibration of ``leg`` by the tripod policy on the free-base simulated Go2.
@@ -218,6 +221,11 @@ def run_policy_a2i(
     None: off, the policy alone): a lift or hold that tips the body past its limit is called
     off as the session does, the leg brought back down over the schedule's ``abort_lower`` from
     the next tick, with the policy balancing.
+    lift_gate: deploy's lift gate (:class:`deploy.lift_gate.GateLimits`, a margin in m or a
+    (margin m, wait s) pair; None: off, the lift on time): the shift is held longer, tick by
+    tick, until the centre of mass estimated from the joints and the body IMU stands that far
+    inside the stance triangle, as the session does; a margin that does not come calls the lift
+    off before the foot leaves the floor (the lift command dropped).
     extra_shift_s: s added to the leg's shift (the second try of a lift the guard called off,
     as deploy makes it).
 
@@ -290,23 +298,45 @@ def run_policy_a2i(
     t_exc0 = float(dur[:3].sum())
     applied = np.zeros(3)  # the adapter's torque in the frame the motors hold
     guard = TipGuard(max_tip)
+    gate = LiftGate(lift_gate)
+    support = go2_support() if gate.limits is not None else None
+    stance = [g for g in LEGS if g != leg]
+    k0 = n_settle  # the step of the lift command; the lift gate moves it later
+    dropped = False  # the lift gate called the lift off: no lift command from then on
     aborted = None
     abort_pending = False
-    k_stop = n_total
+    k_stop = None
     tilt_sq, n_tilt = 0.0, 0  # the body's tilt over the excitation (rad^2), as the evaluation
     pushes = []  # PushRecord of every shove
     fall_time = None
-    for k in range(n_total):
-        if k >= k_stop:
+    k = -1
+    while True:
+        k += 1
+        if k >= n_total or (k_stop is not None and k >= k_stop):
             break
-        t_lift = (k - n_settle) * timestep  # s since the lift command (< 0: settling)
-        if t_lift >= 0:
+        t_lift = (k - k0) * timestep  # s since the lift command (< 0: settling)
+        if (support is not None and not dropped and q_start is None and k % n_ctrl == 0
+                and t_lift + (n_ctrl - 1) * timestep >= ends[0] - 1e-9):
+            # the tick the foot would leave the floor: the session's lift gate
+            verdict = gate.check(support.margin(sim.q, sensed_gravity(sim.base_quat_wxyz),
+                                                stance), pb.control_dt)
+            if verdict != "go":  # this tick stays in the shift
+                k0 += n_ctrl
+                n_total += n_ctrl
+                t_lift -= n_ctrl * timestep
+            if verdict not in ("go", "wait"):
+                aborted, dropped = verdict, True
+                health.update(sim)  # the state it was called off in
+                k_stop = k + round(_WATCH_AFTER_ABORT_S / timestep)
+        if dropped:
+            phase = _DONE
+        elif t_lift >= 0:
             phase = int((t_lift >= ends - 1e-9).sum())
             if phase >= 1 and q_start is None:
                 # latch at the first step of lift, tabulate the schedule from here on
                 q_start = sim.q[idx_m]
                 k_latch = k
-                tt = (np.arange(k, n_total) - n_settle) * timestep
+                tt = (np.arange(k, n_total) - k0) * timestep
                 te = tt - dur[:3].sum()
                 sched_q, sched_dq, sched_phase = blend_targets(
                     tt, dur, q_start[None], plan.q0[None], plan.positions(te),
@@ -330,7 +360,7 @@ def run_policy_a2i(
             sched_tau = adapter = None
             tau_c = 0.0
             phase = _LOWER
-            k_stop = min(n_total, k + n_low + round(_WATCH_AFTER_ABORT_S / timestep))
+            k_stop = k + n_low + round(_WATCH_AFTER_ABORT_S / timestep)
         if k % n_ctrl == 0:
             if adapter is not None and phase == _EXCITE:
                 # a tick's measurement against the plan at this instant, as on board
@@ -372,7 +402,7 @@ def run_policy_a2i(
             if sched_tau is not None:
                 model = sched_tau.at(j, sensed_gravity(sim.base_quat_wxyz))
             if adapter is not None and phase >= _EXCITE:
-                applied = adapter.torque((k_latch + j - n_settle) * timestep - t_exc0,
+                applied = adapter.torque((k_latch + j - k0) * timestep - t_exc0,
                                          sched_dq[j], sched_ddq[j], model)[0]
             if sched_tau is not None or adapter is not None:
                 tau_c = np.zeros(12)
@@ -398,7 +428,7 @@ def run_policy_a2i(
         elif aborted is None:
             # a knee or thigh on the floor fails the run in any phase, as in the evaluation
             health.watch_contacts(sim)
-        if ph_next == _EXCITE and aborted is None and (k + 1 - n_settle) % record_every == 0:
+        if ph_next == _EXCITE and aborted is None and (k + 1 - k0) % record_every == 0:
             # tracking against the plan at the instant of this state (the frame held 4 ms
             # behind it: five times the evaluation's figure on the URDF's model)
             plan_now = q_cmd.copy()
@@ -415,9 +445,12 @@ def run_policy_a2i(
         progress(1.0)
     h = health.result()
     h = dataclasses.replace(h, fell=h.fell or bool(fell), aborted=aborted,
+                            lift_wait_s=gate.waited_s,
                             fall_time_s=fall_time, pushes=tuple(pushes),
                             excite_tilt_rms_deg=float(np.degrees(np.sqrt(tilt_sq / n_tilt)))
                             if n_tilt else None)
+    if dropped:  # no leg was lifted: its foot stood on the floor by design
+        h = dataclasses.replace(h, lifted_foot_touched=None)
     if aborted is not None:
         return None, h
     return rec.finish(f"a2i_{leg}", encoder, body_imu), h

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.support import polygon_margin
 from sim.model import FOOT_RADIUS  # a foot site's height when the foot stands on the floor
-from sim.tripod_pose import polygon_margin
 
 __all__ = [
     "action_rate",

@@ -54,6 +54,7 @@ import numpy as np
 from calib.atomic import write_text_atomic
 from calib.excitation import covariance_kappa
 from calib.joints import LEGS, check_leg, model_indices
+from deploy.lift_gate import GATE_CAUSE, GateLimits
 from deploy.tip_guard import RETRY_SHIFT_S, TipLimits
 from sim.effects import (
     ActuationLatency,
@@ -231,7 +232,8 @@ class EpisodeResult:
     the first lift off, when the episode's figures and outcome are its second lift's.
     fall_time_s: s from the run's start to the fall (None: none). pushes: the shoves of the
     run that counts (:meth:`sim.free_base_run.PushRecord.to_dict`; the capture point's margin
-    in the stance feet's polygon at each)."""
+    in the stance feet's polygon at each). lift_wait_s: s deploy's lift gate held the shift
+    longer in the run that counts."""
 
     scenario: str
     leg: str
@@ -246,6 +248,7 @@ class EpisodeResult:
     retried: str | None = None
     fall_time_s: float | None = None
     pushes: list[dict] = field(default_factory=list)
+    lift_wait_s: float = 0.0
 
 
 TOP_CAUSES = 6
@@ -260,19 +263,22 @@ def _episode_seed(seed: int, scenario: str, leg: str, episode: int) -> np.random
 
 def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed: int = 1,
                 periods: int | None = None, model_xml: str | None = None,
-                max_tip=None) -> EpisodeResult:
+                max_tip=None, lift_gate=None) -> EpisodeResult:
     """One calibration of ``leg`` by the policy under ``scenario`` (its draws from ``seed``,
     the scenario, the leg and ``episode``). periods: None for the JSON's. model_xml: another
     MJCF model of the Go2 (:mod:`sim.external_model`; None: the URDF's). max_tip: deploy's
     tip guard with these limits (:class:`deploy.tip_guard.TipLimits`, a number or a (lift,
-    hold) pair, deg; None: off, the policy alone)."""
+    hold) pair, deg; None: off, the policy alone). lift_gate: deploy's lift gate
+    (:class:`deploy.lift_gate.GateLimits`, a margin in m or a (margin m, wait s) pair; None:
+    off). A lift either calls off is lifted again as on board."""
     from policy_train.policy_motion import run_policy_a2i
 
     def attempt(extra_shift_s=0.0):
         effects, dist = scenario.draw(_episode_seed(seed, scenario.name, leg, episode))
         return run_policy_a2i(onnx_path, leg, periods=periods, effects=effects,
                               disturbance=dist, model_xml=model_xml,
-                              max_tip=max_tip, extra_shift_s=extra_shift_s)
+                              max_tip=max_tip, lift_gate=lift_gate,
+                              extra_shift_s=extra_shift_s)
 
     run, h = attempt()
     retried = None
@@ -283,7 +289,8 @@ def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed
         run, h = attempt(RETRY_SHIFT_S)
     causes = []
     if h.aborted is not None:
-        causes.append("lift called off (tipping)")
+        causes.append("lift called off (centre of mass)" if h.aborted.startswith(GATE_CAUSE)
+                      else "lift called off (tipping)")
     if h.fell:
         causes.append("fall")
     if h.lifted_foot_touched:
@@ -292,7 +299,7 @@ def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed
     res = EpisodeResult(scenario.name, leg, episode, not causes, causes,
                         calf_reach_mm=dict(h.calf_reach_mm), retried=retried,
                         fall_time_s=h.fall_time_s if h.fell else None,
-                        pushes=[p.to_dict() for p in h.pushes])
+                        pushes=[p.to_dict() for p in h.pushes], lift_wait_s=h.lift_wait_s)
     if causes:
         return res
     ramp = 1.0  # the excitation's lead-in / lead-out (calib.excitation.ExcitationConfig.ramp)
@@ -342,15 +349,16 @@ def _saved_by(model: dict) -> str:
 def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int = 1,
                  workers: int | None = None, periods: int | None = None,
                  progress=None, model_xml: str | None = None,
-                 max_tip=None) -> list[EpisodeResult]:
+                 max_tip=None, lift_gate=None) -> list[EpisodeResult]:
     """``episodes`` per leg of ``legs`` (default: the legs the policy's JSON lists) under each
     of ``scenarios`` (names of :data:`SCENARIOS`). workers: processes (None: all cores).
     progress(done, total): optional. model_xml: another MJCF model of the Go2 to run on
-    (:mod:`sim.external_model`; None: the URDF's). max_tip: deploy's tip guard, as
-    :func:`run_episode`."""
+    (:mod:`sim.external_model`; None: the URDF's). max_tip, lift_gate: deploy's tip guard and
+    lift gate, as :func:`run_episode`."""
     from pathlib import Path
 
     max_tip = TipLimits.of(max_tip)  # a bad limit is refused before any worker starts
+    lift_gate = GateLimits.of(lift_gate)
     if episodes < 1:
         raise ValueError(f"episodes must be >= 1, got {episodes}")
     unknown = [s for s in scenarios if s not in SCENARIOS]
@@ -370,8 +378,8 @@ def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int 
             build_model_for(SimConfig(effects=effects, model_xml=model_xml))
         except ValueError as e:
             raise ValueError(f"scenario {s}: {str(e).splitlines()[0]}") from None
-    jobs = [(str(onnx_path), SCENARIOS[s], leg, e, seed, periods, model_xml, max_tip)
-            for s in scenarios for leg in legs for e in range(episodes)]
+    jobs = [(str(onnx_path), SCENARIOS[s], leg, e, seed, periods, model_xml, max_tip,
+             lift_gate) for s in scenarios for leg in legs for e in range(episodes)]
     out: list[EpisodeResult] = []
     with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
         for i, r in enumerate(pool.map(_job, jobs), 1):
@@ -478,11 +486,13 @@ def push_summary(results: list[EpisodeResult]) -> dict:
 
 def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
                     elapsed_s: float | None = None, model: dict | None = None,
-                    max_tip=None) -> str:
+                    max_tip=None, lift_gate=None) -> str:
     """The page of ``a2i-train transfer`` (one row per scenario); model: the
-    :func:`model_identity` of the model it ran on (None: the URDF's); max_tip: the tip
-    guard's limits it ran with (:class:`deploy.tip_guard.TipLimits`; None: off)."""
+    :func:`model_identity` of the model it ran on (None: the URDF's); max_tip, lift_gate: the
+    tip guard's limits and the lift gate it ran with (:class:`deploy.tip_guard.TipLimits`,
+    :class:`deploy.lift_gate.GateLimits`; None: off)."""
     max_tip = TipLimits.of(max_tip)
+    lift_gate = GateLimits.of(lift_gate)
     summ = summarise(results)
     legs = list(dict.fromkeys(r.leg for r in results))
     n = max(1, len(results) // max(1, len(summ) * len(legs)))
@@ -491,6 +501,7 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
     scen_arg = "" if list(summ) == list(SCENARIOS) else f" --scenarios {','.join(summ)}"
     model_arg = "" if model is None else f" --model-xml {model['path']}"
     tip_arg = "" if max_tip is None else f" --max-tip {max_tip}"
+    gate_arg = "" if lift_gate is None else f" --lift-gate {lift_gate}"
     limits = (None if max_tip is None else f"{max_tip.lift:g} deg" if max_tip.lift == max_tip.hold
               else f"{max_tip.lift:g} deg lifting, {max_tip.hold:g} deg holding")
     guard = ("the policy alone (deploy's tip guard, `deploy/tip_guard.py`, off)"
@@ -499,6 +510,14 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
              "a lift it calls off is lifted again with a longer shift, from a stand-up on the "
              "same draws (success in brackets: held on that second lift), and a second lift "
              "called off fails")
+    if lift_gate is not None:
+        held = sum(r.lift_wait_s > 0 for r in results)
+        guard += (f"; deploy's lift gate (`deploy/lift_gate.py`): the foot leaves the floor once "
+                  f"the centre of mass, estimated from the joints and the body IMU, stands "
+                  f"{lift_gate.margin_m * 1e3:g} mm inside the stance triangle, the shift held "
+                  f"up to {lift_gate.wait_s:g} s longer for it (held longer in {held} of "
+                  f"{len(results)} episodes; a lift it calls off is lifted again as the tip "
+                  "guard's)")
     on_model = ("the Go2 model built from the URDF" if model is None else
                 f"the Go2 model of `{model['path']}` (compiled as the simulator runs it: sha256 "
                 f"{model['sha256'][:16]}{_saved_by(model)}; `sim/external_model.py`) instead of "
@@ -507,7 +526,7 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
         "# Tripod policy transfer: a second simulator, perturbations not trained for",
         "",
         (f"Produced by `a2i-train transfer {policy}{scen_arg} --episodes {n} --seed {seed}"
-        f"{leg_arg}{model_arg}{tip_arg}` (`policy_train/transfer.py`): each episode is one calibration of one "
+        f"{leg_arg}{model_arg}{tip_arg}{gate_arg}` (`policy_train/transfer.py`): each episode is one calibration of one "
         "leg by the on-board runner on `sim.go2` (1 kHz, free base on the floor: the mock "
         f"robot's simulator, not the training environment) with {on_model}, and the "
         "scenario's perturbations drawn afresh. Success: no fall and no body but a foot on the "
@@ -572,27 +591,31 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
 
 def write_results(results: list[EpisodeResult], out_md, policy: str, seed: int,
                   elapsed_s: float | None = None, model: dict | None = None,
-                  max_tip=None) -> None:
+                  max_tip=None, lift_gate=None) -> None:
     """The markdown page at ``out_md`` and the episodes beside it (``.json``), atomically;
     model: the :func:`model_identity` of the model it ran on (None: the URDF's)."""
     from pathlib import Path
 
     out_md = Path(out_md)
     max_tip = TipLimits.of(max_tip)
-    write_text_atomic(out_md, render_markdown(results, policy, seed, elapsed_s, model, max_tip))
+    lift_gate = GateLimits.of(lift_gate)
+    write_text_atomic(out_md, render_markdown(results, policy, seed, elapsed_s, model, max_tip,
+                                              lift_gate))
     # one episode per line: a few hundred short rows stay small and diff well
     meta = {"policy": policy, "seed": seed, "elapsed_s": elapsed_s}
     if model is not None:  # pages on the URDF's model keep their earlier form
         meta["model"] = model
     if max_tip is not None:  # and those of the policy alone theirs
         meta["max_tip_deg"] = max_tip.to_json()
+    if lift_gate is not None:
+        meta["lift_gate"] = lift_gate.to_json()
     head = json.dumps(meta)[:-1]
     rows = ",\n".join(json.dumps(dataclasses.asdict(r)) for r in results)
     write_text_atomic(out_md.with_suffix(".json"), f'{head}, "episodes": [\n{rows}\n]}}\n')
 
 
 def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None, log=print,
-              model_xml=None, max_tip=None):
+              model_xml=None, max_tip=None, lift_gate=None):
     """:func:`run_transfer` with a progress line every 10 % or every minute, whichever
     comes first, and the time left at the rate so far (for the CLI)."""
     t0 = time.time()
@@ -608,14 +631,15 @@ def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None,
             log(f"  {done}/{total} episodes, {now - t0:.0f} s{left}")
 
     res = run_transfer(onnx_path, scenarios, legs, episodes, seed, workers, periods, progress,
-                       model_xml, max_tip)
+                       model_xml, max_tip, lift_gate)
     return res, time.time() - t0
 
 
 def load_results(path) -> tuple[dict, list[EpisodeResult]]:
     """The episodes file :func:`write_results` wrote: ({"policy", "seed", "elapsed_s",
-    "model", "max_tip"}, episodes); "model" None for the URDF's, "max_tip" (a
-    :class:`deploy.tip_guard.TipLimits`) None for the policy alone."""
+    "model", "max_tip", "lift_gate"}, episodes); "model" None for the URDF's, "max_tip" (a
+    :class:`deploy.tip_guard.TipLimits`) and "lift_gate" (a
+    :class:`deploy.lift_gate.GateLimits`) None for the policy alone."""
     from pathlib import Path
 
     try:
@@ -624,6 +648,7 @@ def load_results(path) -> tuple[dict, list[EpisodeResult]]:
         meta = {k: d[k] for k in ("policy", "seed", "elapsed_s")}
         meta["model"] = d.get("model")
         meta["max_tip"] = TipLimits.of(d.get("max_tip_deg"))
+        meta["lift_gate"] = GateLimits.of(d.get("lift_gate"))
     except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{path}: not a transfer episodes file ({e})") from None
     return meta, eps
@@ -632,12 +657,12 @@ def load_results(path) -> tuple[dict, list[EpisodeResult]]:
 def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResult],
                   policy: str, seed: int, legs, episodes: int,
                   model: dict | None = None,
-                  max_tip=None) -> list[EpisodeResult]:
+                  max_tip=None, lift_gate=None) -> list[EpisodeResult]:
     """A page's episodes (:func:`load_results`) with ``new``'s scenarios added or replaced, in
     :data:`SCENARIOS`' order: the page one command over every scenario would have written, since
     an episode's draws depend only on the seed, its scenario, leg and number. ValueError unless
     the page has this policy, seed, legs, episodes per leg and scenario, model
-    (:func:`model_identity`, compared by its hash) and tip guard."""
+    (:func:`model_identity`, compared by its hash), tip guard and lift gate."""
     meta, old = page
     old_legs = list(dict.fromkeys(r.leg for r in old))
     per = {(r.scenario, r.leg) for r in old}
@@ -654,7 +679,8 @@ def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResul
                            ("episodes", old_n, episodes),
                            ("model", _model(old_model),
                             _model(old_model) if same_model else _model(new_model)),
-                           ("tip guard", meta.get("max_tip"), TipLimits.of(max_tip))):
+                           ("tip guard", meta.get("max_tip"), TipLimits.of(max_tip)),
+                           ("lift gate", meta.get("lift_gate"), GateLimits.of(lift_gate))):
         if was != now:
             raise ValueError(f"the page has {what} {was}, not {now}: write a new page")
     redone = {r.scenario for r in new}

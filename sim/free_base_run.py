@@ -76,7 +76,7 @@ class PushRecord:
     legs the schedule stood on (three while a leg is lifted, from the lift to the end of the
     lowering; four otherwise). com_margin_m: the margin, m, of the whole robot's centre of
     mass (its ground projection) in the polygon of those feet
-    (:func:`sim.tripod_pose.polygon_margin`: > 0 inside, < 0 outside), just before the push.
+    (:func:`calib.support.polygon_margin`: > 0 inside, < 0 outside), just before the push.
     capture_margin_m: the same of the instantaneous capture point just after it, ``c + v / w0`` with ``w0 = sqrt(g / h)``, h the
     centre of mass's height over the stance feet's soles: a linear inverted pendulum on point
     feet (as the Go2's are) whose capture point leaves the support polygon cannot be stopped
@@ -136,6 +136,7 @@ class RunHealth:
     fall_time_s: sim time, s, at which the run's driver first saw the tilt or the height past
     the fall thresholds (a policy's run; None if it did not). pushes: the shoves the run was
     given (:class:`PushRecord`; a policy's run under a disturbance with pushes).
+    lift_wait_s: s the run's driver held the shift longer before the lift (deploy's lift gate).
     """
 
     max_tilt_deg: float
@@ -153,6 +154,7 @@ class RunHealth:
     excite_tilt_rms_deg: float | None = None
     fall_time_s: float | None = None
     pushes: tuple[PushRecord, ...] = ()
+    lift_wait_s: float = 0.0
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)

@@ -33,10 +33,10 @@ import mujoco
 import numpy as np
 
 from calib.joints import MODEL_LEGS
+from calib.support import polygon_margin
 from sim.model import FOOT_RADIUS  # a foot site's height when the foot stands on the floor
 
-__all__ = ["FOOT_RADIUS", "TripodPose", "capture_margins", "polygon_margin", "support_point",
-           "tripod_pose"]
+__all__ = ["FOOT_RADIUS", "TripodPose", "capture_margins", "support_point", "tripod_pose"]
 
 
 @dataclass(frozen=True)
@@ -68,24 +68,6 @@ def _edge_distances(p: np.ndarray, tri: np.ndarray) -> tuple[np.ndarray, np.ndar
         d.append(float(nin @ (p - p0)))
         n.append(nin)
     return np.array(d), np.array(n)
-
-
-def polygon_margin(p_xy: np.ndarray, vertices_xy: np.ndarray) -> np.ndarray:
-    """Signed margin (m) of ground points in convex polygons: inside, the distance to the
-    nearest edge (> 0); outside, minus the farthest past any edge's line (the distance to the
-    polygon beyond an edge, a little less beyond a corner). p_xy (N, 2); vertices_xy
-    (N, k, 2), k >= 3, in order around the polygon, either way (a triangle's in any order)."""
-    p = np.asarray(p_xy, dtype=float)
-    v = np.asarray(vertices_xy, dtype=float)
-
-    def cross(u, w):
-        return u[..., 0] * w[..., 1] - u[..., 1] * w[..., 0]
-
-    orient = np.sign(cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]))
-    orient = np.where(orient == 0, 1.0, orient)
-    e = np.roll(v, -1, axis=1) - v  # (N, k, 2) edges
-    d = orient[:, None] * cross(e, p[:, None] - v) / np.maximum(np.linalg.norm(e, axis=-1), 1e-6)
-    return d.min(axis=1)
 
 
 def capture_margins(com: np.ndarray, vel_xy: np.ndarray, feet: np.ndarray,

@@ -15,7 +15,9 @@ from deploy.tip_guard import DEFAULT_TIP_LIMITS, TipLimits
 
 pytest.importorskip("onnx")
 
-CFG = SessionConfig(passive_s=0.1, stand_s=0.4, stand_settle_s=0.2, sit_s=0.2, sit_hold_s=0.1)
+# the lift gate off: the hold policy never moves the body over the tripod (its tests below)
+CFG = SessionConfig(passive_s=0.1, stand_s=0.4, stand_settle_s=0.2, sit_s=0.2, sit_hold_s=0.1,
+                    lift_gate=None)
 
 
 @pytest.fixture(scope="module")
@@ -337,6 +339,67 @@ def test_the_tip_guard_watches_lift_and_hold_only_and_none_is_off(meta_paths):
     off.quat = _roll(12.0)
     off.run_until(State.DONE)
     assert off.reports[0].ok
+
+
+def _pitch(deg):
+    a = np.radians(deg) / 2
+    return np.array([np.cos(a), 0.0, np.sin(a), 0.0])
+
+
+def test_the_foot_leaves_the_floor_only_once_the_body_stands_over_the_tripod(meta_paths):
+    from calib.joints import LEGS, sdk_to_model
+    from calib.support import go2_support
+    from deploy.observation import projected_gravity
+
+    rig = Rig(meta_paths[0], legs=("FL",), config=dataclasses.replace(CFG, lift_gate=(0.02, 1.0)))
+    stand = sdk_to_model(rig.meta.default_pose)
+    tripod = [g for g in LEGS if g != "FL"]
+    # the hold policy's stand: 4 mm short of the FL tripod; nose up 10 deg, 29 mm inside
+    assert go2_support().margin(stand, projected_gravity(rig.quat), tripod) < 0
+    assert go2_support().margin(stand, projected_gravity(_pitch(-10.0)), tripod) > 0.02
+    rig.run_until(State.TRIPOD)
+    shift_ticks = round(rig.meta.schedule.shift_of("FL") / 0.02)
+    for _ in range(shift_ticks + 7):  # the shift, then 7 ticks held for the margin
+        rig.tick()
+        assert rig.s.phase == "shift" and rig.s._q_start is None
+    assert rig.s._gate.waited_s == pytest.approx(7 * 0.02)
+    rig.quat = _pitch(-10.0)
+    rig.tick()
+    assert rig.s.phase == "lift" and rig.s._q_start is not None
+    rig.quat = _pitch(0.0)  # lifted: the foot is the tip guard's, not the gate's (2 deg)
+    rig.run_until(State.DONE)
+    assert rig.reports[0].ok and rig.reports[0].retried is None and len(rig.solves) == 1
+
+
+def test_a_body_that_never_stands_over_the_tripod_is_not_lifted_and_tried_again(meta_paths):
+    rig = Rig(meta_paths[0], legs=("FL",), config=dataclasses.replace(CFG, lift_gate=(0.02, 0.2)))
+    phases = set()
+    for _ in range(3000):
+        if rig.s.state is State.DONE:
+            break
+        rig.tick()
+        phases.add(rig.s.phase)
+    assert phases <= {"", "shift", "done"}  # the foot never left the floor
+    assert rig.states.count(State.REPLANT) == 1 and rig.states.count(State.TRIPOD) == 2
+    assert "again with a 1.2 s shift" in [c for _, b, c in rig.transitions
+                                          if b is State.TRIPOD][1]
+    (fl,) = rig.reports
+    assert not fl.ok and rig.solves == []
+    for why in (fl.error, fl.retried):
+        assert why.startswith("centre of mass -4 mm in the stance triangle after 0.2 s")
+    assert rig.s.fault is None
+
+
+def test_a_gate_the_body_passes_changes_nothing(meta_paths):
+    runs = []
+    for gate in (None, (0.0, 2.0)):  # RL's tripod: 4 mm inside at the hold policy's stand
+        rig = Rig(meta_paths[0], legs=("RL",), config=dataclasses.replace(CFG, lift_gate=gate))
+        cmds = []
+        while rig.s.state is not State.DONE:
+            cmds.append(rig.tick().q)
+        runs.append((rig.transitions, np.array(cmds)))
+    assert runs[0][0] == runs[1][0]
+    np.testing.assert_array_equal(runs[0][1], runs[1][1])
 
 
 def test_two_legs_in_turn(meta_paths):

@@ -34,7 +34,8 @@ from deploy.simulate import free_tcp_port, truth_tuples
 from hw.mock.config import MockConfig
 from hw.mock.robot import MockRobot
 
-FAST = SessionConfig(passive_s=0.2, stand_s=1.0, stand_settle_s=0.4)
+# hung up, the body cannot move over the tripod: the lift gate is off (a2i-deploy --lift-gate off)
+FAST = SessionConfig(passive_s=0.2, stand_s=1.0, stand_settle_s=0.4, lift_gate=None)
 ROT_TOL_DEG = 0.5
 OFFSET_TOL_S = 1e-3
 
@@ -155,7 +156,8 @@ def test_cli_sim_with_garbage_on_the_serial_line(policies, tmp_path):
         "FR": {"garbage_prob": 0.3, "garbage_max_bytes": 40}}}))
     out = tmp_path / "out"
     code = main(["--leg", "FR", "--sim", "--sim-seed", "5", "--sim-config", str(cfg),
-                 "--policy", str(policies["hold"]), "--periods", "1", "--out", str(out)])
+                 "--policy", str(policies["hold"]), "--periods", "1", "--lift-gate", "off",
+                 "--out", str(out)])
     assert code == 0
     truth = json.loads((out / "sim_truth.json").read_text())
     assert set(truth) == {"FL", "FR", "RL", "RR"}
@@ -453,5 +455,25 @@ def test_cli_a_lift_that_tips_is_called_off_and_the_robot_stays_up(tmp_path, cap
     assert out.count("TRIPOD -> LOWER: abort: the body tipped") == 2 and "in lift" in out
     assert "REPLANT" in out and "again with a 3 s shift" in out
     assert "LOWER -> STAND: foot down" in out and "SIT -> DONE" in out and "DAMP" not in out
+    assert "Leg FL: NO CALIBRATION WRITTEN" in out and "its first lift was called off" in out
+    assert not (tmp_path / "FL.json").exists()
+
+
+@pytest.mark.skipif(_trained_policies() is None,
+                    reason="no trained tripod policy for FL in policies/")
+def test_cli_a_lift_the_body_cannot_stand_for_is_not_lifted(tmp_path, capsys):
+    """`a2i-deploy --lift-gate`: with a margin no stance reaches (150 mm) the shift is held its
+    0.1 s and the lift called off with the foot still on the floor; the robot sits, stands and
+    tries once more with a longer shift, called off too: exit 1, nothing written for FL."""
+    from deploy.cli import main
+
+    code = main(["--leg", "FL", "--sim", "--sim-seed", "3", "--periods", "1",
+                 "--lift-gate", "150,0.1", "--out", str(tmp_path)])
+    assert code == 1
+    out = capsys.readouterr().out
+    assert out.count("TRIPOD -> LOWER: abort: centre of mass") == 2
+    assert "after 0.1 s more shift (needs +150)" in out
+    assert "REPLANT" in out and "again with a 3 s shift" in out
+    assert "SIT -> DONE" in out and "DAMP" not in out
     assert "Leg FL: NO CALIBRATION WRITTEN" in out and "its first lift was called off" in out
     assert not (tmp_path / "FL.json").exists()

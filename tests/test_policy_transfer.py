@@ -424,12 +424,57 @@ def test_a_page_records_the_tip_limits_of_each_phase(tmp_path):
         merge_results((meta, eps), [], "p.onnx", 1, ["FL"], 2, None, 5.0)
 
 
+def test_the_lift_gate_holds_the_shift_of_a_lift_the_floor_would_tip():
+    """v43's one `slope` fall of the URDF's 80 (FL, episode 7: the floor falling away towards
+    the lifted corner, the centre of mass 38 mm outside the tripod when the lift began) holds
+    once the gate has held its shift until the body stands over the tripod."""
+    v43 = POLICY.with_name("tripod_go2_v43.onnx")
+    if not v43.is_file():
+        pytest.skip("no v43")
+    alone = run_episode(str(v43), SCENARIOS["slope"], "FL", 7, periods=1)
+    assert not alone.success and "fall" in alone.causes and alone.lift_wait_s == 0.0
+    gated = run_episode(str(v43), SCENARIOS["slope"], "FL", 7, periods=1, lift_gate=0.02)
+    assert gated.success and gated.retried is None and 0.2 < gated.lift_wait_s < 1.0
+
+
+def test_a_lift_the_gate_never_opens_is_not_lifted_and_tried_again():
+    """A margin no stance reaches: the shift is held its wait, the lift called off with the
+    foot on the floor, and the episode's second lift (1 s more shift) called off too."""
+    v43 = POLICY.with_name("tripod_go2_v43.onnx")
+    if not v43.is_file():
+        pytest.skip("no v43")
+    r = run_episode(str(v43), SCENARIOS["nominal"], "FL", 0, periods=1, lift_gate=(0.15, 0.1))
+    assert not r.success and r.retried.startswith("centre of mass")
+    assert r.causes == ["lift called off (centre of mass)"]  # no fall, no foot down
+    page = render_markdown([r], str(v43), 1, lift_gate=(0.15, 0.1))
+    assert "--lift-gate 150,0.1" in page and "150 mm inside the stance triangle" in page
+
+
+def test_a_page_records_its_lift_gate(tmp_path):
+    from deploy.lift_gate import DEFAULT_GATE
+
+    res = _run({"nominal": [True, False]})
+    write_results(res, tmp_path / "p.md", "p.onnx", 1, 1.0, None, None, DEFAULT_GATE)
+    text = (tmp_path / "p.md").read_text()
+    assert "--lift-gate 20,2" in text and "held longer in 0 of 2 episodes" in text
+    meta, eps = load_results(tmp_path / "p.json")
+    assert meta["lift_gate"] == DEFAULT_GATE and meta["max_tip"] is None
+    merge_results((meta, eps), [], "p.onnx", 1, ["FL"], 2, None, None, (0.02, 2.0))
+    with pytest.raises(ValueError, match="the page has lift gate 20,2, not None"):
+        merge_results((meta, eps), [], "p.onnx", 1, ["FL"], 2)
+    write_results(res, tmp_path / "q.md", "p.onnx", 1, 1.0)  # the policy alone: as before
+    assert "lift_gate" not in json.loads((tmp_path / "q.json").read_text())
+    assert load_results(tmp_path / "q.json")[0]["lift_gate"] is None
+
+
 @pytest.mark.parametrize("argv, message", [
     (["transfer"], "needs the policy"),
     (["transfer", "POLICY", "--scenarios", "moon"], "unknown scenario(s) moon"),
     (["transfer", "POLICY", "--episodes", "0"], "must be >= 1"),
     (["transfer", "POLICY", "--max-tip", "5,x"], "tip limits are LIFT[,HOLD] deg"),
     (["transfer", "POLICY", "--max-tip", "5,95"], "(hold) must be in (0, 90) deg"),
+    (["transfer", "POLICY", "--lift-gate", "20,x"], "the lift gate is MM[,S] or off"),
+    (["transfer", "POLICY", "--lift-gate", "300"], "margin_m must be in [-0.2, 0.2]"),
     (["transfer", "nowhere.onnx"], "no such file"),
 ])
 def test_cli_bad_input_is_one_line_exit_2(argv, message, capsys):

@@ -9,14 +9,9 @@ mujoco = pytest.importorskip("mujoco")
 
 from calib.excitation import TRIPOD_LIFT_POSE_LEG
 from calib.joints import MODEL_LEGS, default_crouch, pose_for_leg
+from calib.support import polygon_margin
 from policy_train.model import TrainModel
-from sim.tripod_pose import (
-    FOOT_RADIUS,
-    capture_margins,
-    polygon_margin,
-    support_point,
-    tripod_pose,
-)
+from sim.tripod_pose import FOOT_RADIUS, capture_margins, support_point, tripod_pose
 
 
 @pytest.fixture(scope="module")
