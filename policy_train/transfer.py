@@ -505,7 +505,8 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
     limits = (None if max_tip is None else f"{max_tip.lift:g} deg" if max_tip.lift == max_tip.hold
               else f"{max_tip.lift:g} deg lifting, {max_tip.hold:g} deg holding")
     guard = ("the policy alone (deploy's tip guard, `deploy/tip_guard.py`, off)"
-             if max_tip is None else
+             if max_tip is None and lift_gate is None else
+             "deploy's tip guard (`deploy/tip_guard.py`) off" if max_tip is None else
              f"deploy's tip guard at {limits} (`deploy/tip_guard.py`), as on board: "
              "a lift it calls off is lifted again with a longer shift, from a stand-up on the "
              "same draws (success in brackets: held on that second lift), and a second lift "
