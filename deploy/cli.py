@@ -100,11 +100,10 @@ def _parser() -> argparse.ArgumentParser:
                         "the leg swings to the excitation's start (one number: both; 0: never; "
                         f"default {DEFAULT_TIP_LIMITS}; see deploy/tip_guard.py)")
     p.add_argument("--lift-gate", default=str(DEFAULT_GATE), metavar="MM[,S]",
-                   help="lift the foot only once the centre of mass, estimated from the joints "
-                        "and the body IMU, stands MM mm inside the triangle of the other three "
-                        "feet, holding the shift up to S s longer for it; a lift it cannot "
-                        "start is called off and tried once more, as --max-tip's (off: lift on "
-                        f"time; default {DEFAULT_GATE}; see deploy/lift_gate.py)")
+                   help="lift the foot once the estimated centre of mass stands MM mm inside the "
+                        "other three feet, the shift held up to S s longer for it, else call the "
+                        f"lift off as --max-tip does (off: on time; default {DEFAULT_GATE}; "
+                        "deploy/lift_gate.py)")
     p.add_argument("--record-seconds", type=float, default=180.0, metavar="S",
                    help="recorder history kept in memory and saved as MCAP (default 180)")
     p.add_argument("--force", action="store_true",

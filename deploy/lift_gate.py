@@ -56,11 +56,10 @@ class GateLimits:
         pair, or None (off). ValueError (one line) otherwise."""
         if value is None or isinstance(value, GateLimits):
             return value
-        if isinstance(value, (list, tuple)):
-            if len(value) != 2:
-                raise ValueError(f"the lift gate is (margin m, wait s), got {value!r}")
-            return cls(*value)
-        return cls(value)
+        pair = isinstance(value, (list, tuple))
+        if pair and len(value) != 2:
+            raise ValueError(f"the lift gate is (margin m, wait s), got {value!r}")
+        return cls(*value) if pair else cls(value)
 
     @classmethod
     def parse(cls, text: str) -> GateLimits | None:
