@@ -109,5 +109,8 @@ class LiftGate:
         if self.waited_s + dt <= self.limits.wait_s + 1e-9:
             self.waited_s += dt
             return "wait"
+        if not math.isfinite(margin_m):  # e.g. no body attitude: nothing to stand on
+            return (f"{GATE_CAUSE} unknown (no body attitude) after {self.waited_s:.1f} s more "
+                    "shift")
         return (f"{GATE_CAUSE} {margin_m * 1e3:+.0f} mm in the stance triangle "
                 f"after {self.waited_s:.1f} s more shift (needs {self.limits.margin_m * 1e3:+.0f})")

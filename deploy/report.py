@@ -12,8 +12,10 @@ __all__ = ["leg_summary", "results_table"]
 
 
 def _retried(o: LegOutcome) -> str:
-    return (f"\n  (its first lift was called off: {o.retried}; lifted again with a longer shift)"
-            if o.retried else "")
+    held = (f"\n  (its shift was held {o.lift_wait_s:.2f} s longer, until the centre of mass stood "
+            "over the other three feet)" if o.lift_wait_s > 0 else "")
+    return held + (f"\n  (its first lift was called off: {o.retried}; lifted again with a longer "
+                   "shift)" if o.retried else "")
 
 
 def leg_summary(o: LegOutcome) -> str:

@@ -203,6 +203,7 @@ class LegOutcome:
     error: str | None = None
     payload: object = None  # the solve job's result object (deploy.solve.SolveOutcome)
     retried: str | None = None  # why the first lift was called off, if it was tried again
+    lift_wait_s: float = 0.0  # s the lift gate held the shift of the lift that counts
     job: object = field(default=None, repr=False)  # its solve job, once started
 
 
@@ -482,6 +483,7 @@ class Session:
         self.meta = self.policy.meta
         if self._retry is not None and self._retry.leg == leg:  # a tipped lift, again
             self._current, self._retry = self._retry, None
+            self._current.lift_wait_s = 0.0  # the second lift is the one that counts
             sched = self.meta.schedule
             shift = sched.shift_of(leg) + self.cfg.tip_retry_shift_s
             self.meta = dataclasses.replace(self.meta, schedule=sched.with_shift(leg, shift))
@@ -652,6 +654,7 @@ class Session:
             self._abort_leg(gated)
             return cmd
         if gated == "go" and self._gate.waited_s > 0:
+            self._current.lift_wait_s = self._gate.waited_s
             log.warning("%s: shift held %.2f s longer for the centre of mass", self.leg,
                         self._gate.waited_s)
         tipped = self._tip.check(self.phase, inp.quat)

@@ -9,6 +9,7 @@ import pytest
 from calib.joints import LIE_POSE_LEG, full_pose, sdk_indices
 from deploy.lift_schedule import COMMANDS_PER_TICK, LiftSchedule
 from deploy.policy import PolicyMeta, PolicyRunner
+from deploy.report import leg_summary
 from deploy.session import Session, SessionConfig, State, TickInput
 from deploy.supervisor import SafetySupervisor, SupervisorConfig
 from deploy.tip_guard import DEFAULT_TIP_LIMITS, TipLimits
@@ -369,6 +370,10 @@ def test_the_foot_leaves_the_floor_only_once_the_body_stands_over_the_tripod(met
     rig.quat = _pitch(0.0)  # lifted: the foot is the tip guard's, not the gate's (2 deg)
     rig.run_until(State.DONE)
     assert rig.reports[0].ok and rig.reports[0].retried is None and len(rig.solves) == 1
+    assert rig.reports[0].lift_wait_s == pytest.approx(7 * 0.02)
+    # the leg's report says so (a fake solve: its result block is "no result")
+    text = leg_summary(rig.reports[0])
+    assert "its shift was held 0.14 s longer, until the centre of mass stood" in text
 
 
 def test_a_body_that_never_stands_over_the_tripod_is_not_lifted_and_tried_again(meta_paths):

@@ -112,6 +112,9 @@ def test_the_gate_calls_the_lift_off_when_the_wait_runs_out():
     assert "needs +20" in verdicts[5]
     assert LiftGate(GateLimits(0.02, 0.0)).check(0.0, 0.02).startswith(GATE_CAUSE)  # no wait
     assert LiftGate(None).check(-1.0, 0.02) == "go"  # off
+    blind = LiftGate(GateLimits(0.02, 0.0))  # no body attitude: the session's -inf
+    assert blind.check(-math.inf, 0.02) == f"{GATE_CAUSE} unknown (no body attitude) after 0.0 s " \
+        "more shift"
 
 
 def test_gate_limits_from_numbers_pairs_and_text():
