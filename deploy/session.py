@@ -131,8 +131,8 @@ class SessionConfig:
     # holding) is called off, the foot put back down (deploy.tip_guard, which says where the
     # limits come from; a2i-deploy --max-tip); None: never
     max_tip: TipLimits | None = DEFAULT_TIP_LIMITS
-    # a lift the tip guard called off is tried once more, after REPLANT, with its shift this
-    # much longer (s); None: not tried again
+    # a lift the tip guard or the lift gate called off is tried once more, after REPLANT, with
+    # its shift this much longer (s); None: not tried again
     tip_retry_shift_s: float | None = RETRY_SHIFT_S
     # the foot leaves the floor only once the estimated centre of mass stands this far inside
     # the stance triangle, the shift held up to this much longer for it (deploy.lift_gate,
@@ -277,10 +277,10 @@ class Session:
         self._adapter: TrackingAdapter | None = None  # the lifted leg's, where the schedule's adapt
         self._adapted = np.zeros(3)
         self._tip = TipGuard(self.cfg.max_tip)
-        self._tipped = False  # this lift was called off by the tip guard or the lift gate
+        self._called_off = False  # this lift was called off by the tip guard or the lift gate
         self._gate = LiftGate(self.cfg.lift_gate)
         self._support = go2_support() if self.cfg.lift_gate is not None else None
-        self._retry: LegOutcome | None = None  # a tipped lift's outcome, to be tried again
+        self._retry: LegOutcome | None = None  # a called-off lift's outcome, to be tried again
         self.lie_pose = full_pose(LIE_POSE_LEG, order="sdk")
         self.phase = ""
         self.last_command: Command | None = None
@@ -443,10 +443,10 @@ class Session:
         return cmd
 
     def _queue_retry(self) -> bool:
-        """Queue the current lift again (True) if the tip guard called it off and it was not
-        a retry already (``SessionConfig.tip_retry_shift_s``)."""
+        """Queue the current lift again (True) if the tip guard or the lift gate called it off
+        and it was not a retry already (``SessionConfig.tip_retry_shift_s``)."""
         o = self._current
-        if not self._tipped or self.cfg.tip_retry_shift_s is None or o.retried is not None:
+        if not self._called_off or self.cfg.tip_retry_shift_s is None or o.retried is not None:
             return False
         o.retried, o.error = o.error, None
         self._retry, self._current = o, None
@@ -481,7 +481,7 @@ class Session:
         if self.policies is not None:
             self.policy = self.policies[leg]
         self.meta = self.policy.meta
-        if self._retry is not None and self._retry.leg == leg:  # a tipped lift, again
+        if self._retry is not None and self._retry.leg == leg:  # a called-off lift, again
             self._current, self._retry = self._retry, None
             self._current.lift_wait_s = 0.0  # the second lift is the one that counts
             sched = self.meta.schedule
@@ -494,7 +494,7 @@ class Session:
             self.outcomes.append(self._current)
         self._q_start = None
         self._abort = None
-        self._tipped = False
+        self._called_off = False
         self._window_start = self._window_end = None
         self.policy.reset(inp.q)
         sched = self.meta.schedule
@@ -650,7 +650,7 @@ class Session:
         if self.state is State.DAMP:
             return cmd
         if gated not in (None, "go", "wait"):
-            self._tipped = True  # tried again as a tipped lift is
+            self._called_off = True
             self._abort_leg(gated)
             return cmd
         if gated == "go" and self._gate.waited_s > 0:
@@ -659,7 +659,7 @@ class Session:
                         self._gate.waited_s)
         tipped = self._tip.check(self.phase, inp.quat)
         if tipped is not None:
-            self._tipped = True
+            self._called_off = True
             self._abort_leg(tipped)  # the foot goes down from the next tick (_lower_now)
             return cmd
         if self.phase == "excite":
