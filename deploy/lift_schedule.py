@@ -150,7 +150,13 @@ class LiftSchedule:
     torque (:class:`deploy.leg_dynamics.LegDynamics`); a JSON without it has none. adapt: from
     2 s into the excitation on, also command the torque the leg's tracking shows the model
     lacks (:class:`deploy.tracking_adapter.TrackingAdapter`: damping, friction, inertia, a
-    torque constant off); a JSON without it has none.
+    torque constant off); a JSON without it has none. hide_excitation: while the excitation
+    plays, the policy observes the lifted leg at the plan's centre pose ``q0``, still (its
+    joint positions and velocities replaced), as it saw the leg in the hold before. v43's
+    answer to the motion it sees, not the leg's reaction on the body, is half the body's
+    rotation over the excitation; hidden, that half goes, but a policy that does not see its
+    leg sag on weak motors loses lifts it keeps when it sees it (docs/policy-training.md,
+    stop 67): no committed policy has it. A JSON without it observes the leg.
     """
 
     shift: float = 1.0
@@ -167,6 +173,7 @@ class LiftSchedule:
     ground_clearance: float = ExcitationConfig.ground_clearance
     feedforward: bool = False
     adapt: bool = False
+    hide_excitation: bool = False
 
     def __post_init__(self) -> None:
         for k in ("shift", "lift", "hold", "lower", "kp", "kd", "t_r", "ground_clearance",
@@ -197,7 +204,7 @@ class LiftSchedule:
             raise ValueError(f"kp must be > 0 and kd >= 0 (finite), got kp {self.kp}, kd {self.kd}")
         if not (np.isfinite(self.ground_clearance) and self.ground_clearance >= 0):
             raise ValueError(f"ground_clearance must be >= 0 m, got {self.ground_clearance}")
-        for k in ("feedforward", "adapt"):
+        for k in ("feedforward", "adapt", "hide_excitation"):
             if not isinstance(getattr(self, k), bool):
                 # a bad JSON value, reported like the others (the loaders catch ValueError)
                 raise ValueError(  # noqa: TRY004

@@ -40,6 +40,7 @@ __all__ = [
     "build_observation",
     "check_terms",
     "default_terms",
+    "hide_lifted_leg",
     "history_length",
     "projected_gravity",
 ]
@@ -156,6 +157,23 @@ def build_observation(terms, signals: Mapping[str, np.ndarray], clip: float | No
             raise ValueError(f"clip must be a positive number, got {clip}")
         np.clip(obs, -clip, clip, out=obs)
     return obs.astype(np.float32)
+
+
+def hide_lifted_leg(signals: Mapping[str, np.ndarray], idx, q_held) -> dict:
+    """``signals`` with the lifted leg's joints observed at ``q_held``, still: its
+    ``joint_pos`` replaced by ``q_held`` and its ``joint_vel`` by 0 (a lift schedule's
+    ``hide_excitation``, :class:`deploy.lift_schedule.LiftSchedule`). idx: the leg's 3 columns
+    of the joints (SDK order), or (n, 3) of n rows of batched signals; q_held: rad, (3,) or
+    (n, 3). The other signals are the same objects."""
+    q = np.array(signals["joint_pos"], dtype=float)
+    dq = np.array(signals["joint_vel"], dtype=float)
+    idx = np.asarray(idx)
+    if q.ndim == 1:
+        q[idx], dq[idx] = q_held, 0.0
+    else:
+        np.put_along_axis(q, idx, np.asarray(q_held, dtype=float), axis=1)
+        np.put_along_axis(dq, idx, 0.0, axis=1)
+    return {**signals, "joint_pos": q, "joint_vel": dq}
 
 
 def projected_gravity(quat_wxyz) -> np.ndarray:

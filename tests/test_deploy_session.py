@@ -564,3 +564,34 @@ def test_feedforward_schedule_sends_the_lifted_leg_torque(tmp_path):
     np.testing.assert_allclose(cmd.tau[idx], want)
     assert np.abs(cmd.tau[idx]).max() > 0.1  # the leg's weight, at least
     assert not np.delete(cmd.tau, idx).any()
+
+
+@pytest.mark.parametrize("hide", [False, True])
+def test_hide_excitation_shows_the_policy_the_lifted_leg_held(tmp_path, hide):
+    """With the schedule's ``hide_excitation`` the policy observes the lifted leg at the plan's
+    ``q0``, still, on every excitation tick, while its commands still play the plan; before
+    and after the excitation, and without it, the policy observes the leg as measured."""
+    from deploy.hold_policy import write_hold_policy
+
+    sched = LiftSchedule(shift=0.2, lift=0.2, hold=0.2, lower=0.2, periods=1,
+                         hide_excitation=hide)
+    rig = Rig(write_hold_policy(tmp_path, "hide", schedule=sched), legs=("RL",))
+    idx = sdk_indices("RL")
+    q0 = sched.plan("RL").q0
+    offset = np.asarray(rig.meta.observation["terms"][3]["offset"])[idx]
+    rig.run_until(State.CALIBRATE)
+    seen = {"excite": [], "other": []}
+    while rig.s.state is State.CALIBRATE:
+        q_in = rig.q[idx].copy()
+        cmd = rig.tick()
+        if cmd.source.startswith("policy:"):
+            seen["excite" if cmd.source == "policy:excite" else "other"].append(
+                (cmd.obs[9 + idx], q_in, cmd.q[idx]))
+    excite = seen["excite"]
+    assert len(excite) > 20 and seen["other"]
+    moved = np.ptp([c for _, _, c in excite], axis=0)
+    assert moved.min() > 0.05  # the leg is commanded through the plan either way
+    for obs, q_in, _ in seen["other"]:
+        np.testing.assert_allclose(obs, q_in - offset, atol=1e-6)
+    for obs, q_in, _ in excite:
+        np.testing.assert_allclose(obs, (q0 if hide else q_in) - offset, atol=1e-6)

@@ -55,7 +55,10 @@ def test_metadata_round_trip_and_errors(sched):
     with pytest.raises(ValueError, match="unknown lift_schedule keys"):
         LiftSchedule.from_metadata({**d, "bogus": 1})
     assert LiftSchedule.from_metadata({**d, "adapt": True}).adapt
-    for key in ("feedforward", "adapt"):
+    hidden = LiftSchedule.from_metadata({**d, "hide_excitation": True})
+    assert hidden.hide_excitation and not sched.hide_excitation
+    assert LiftSchedule.from_metadata(hidden.to_metadata()) == hidden
+    for key in ("feedforward", "adapt", "hide_excitation"):
         with pytest.raises(ValueError, match=f"{key} must be true or false"):
             LiftSchedule.from_metadata({**d, key: "yes"})
     with pytest.raises(ValueError):

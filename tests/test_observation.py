@@ -12,6 +12,7 @@ from deploy.observation import (
     build_observation,
     check_terms,
     default_terms,
+    hide_lifted_leg,
     projected_gravity,
 )
 
@@ -72,6 +73,59 @@ def test_bad_terms_raise():
         check_terms([{"name": "joint_pos", "size": 3}])
     with pytest.raises(ValueError, match="end in size"):
         build_observation(default_terms(np.zeros(12)), {**_signals(), "joint_vel": np.zeros(11)})
+
+
+def test_hide_lifted_leg_one_and_batched():
+    """The lifted leg's 3 joints read ``q_held`` and 0 rad/s; every other joint and signal is
+    what was measured; the caller's arrays are not written."""
+    from calib.joints import sdk_indices
+
+    sig = _signals()
+    before = {k: v.copy() for k, v in sig.items()}
+    idx = sdk_indices("FL")
+    out = hide_lifted_leg(sig, idx, [0.1, 0.8, -1.5])
+    np.testing.assert_array_equal(out["joint_pos"][idx], [0.1, 0.8, -1.5])
+    np.testing.assert_array_equal(out["joint_vel"][idx], 0.0)
+    rest = np.setdiff1d(np.arange(12), idx)
+    np.testing.assert_array_equal(out["joint_pos"][rest], sig["joint_pos"][rest])
+    np.testing.assert_array_equal(out["joint_vel"][rest], sig["joint_vel"][rest])
+    assert out["base_ang_vel"] is sig["base_ang_vel"]
+    for k, v in before.items():
+        np.testing.assert_array_equal(sig[k], v)
+    batch = _signals((2,), seed=1)
+    cols = np.stack([sdk_indices("FL"), sdk_indices("RR")])
+    held = np.array([[0.1, 0.8, -1.5], [-0.2, 0.9, -1.6]])
+    out = hide_lifted_leg(batch, cols, held)
+    for r in range(2):
+        one = hide_lifted_leg({k: v[r] for k, v in batch.items()}, cols[r], held[r])
+        np.testing.assert_array_equal(out["joint_pos"][r], one["joint_pos"])
+        np.testing.assert_array_equal(out["joint_vel"][r], one["joint_vel"])
+
+
+def test_env_hides_only_the_exciting_legs():
+    """``EnvConfig.hide_excitation``: the env shows the policy each exciting env's lifted leg
+    at its plan's ``q0``, still (SDK order, as deploy does); an env in another phase, or with no
+    leg lifted, is observed as measured."""
+    from calib.joints import MODEL_LEGS, sdk_indices
+    from deploy.lift_schedule import PHASES
+    from policy_train.config import EnvConfig
+    from policy_train.env import TripodEnv
+
+    env = TripodEnv(EnvConfig(num_envs=3, plans_per_leg=1, seed=5, threads=1))
+    env.step(np.random.default_rng(2).normal(0, 0.3, (3, 12)))
+    env.lift_leg[:] = [1, 3, -1]
+    env.phase[:] = [PHASES.index("excite"), PHASES.index("hold"), PHASES.index("excite")]
+    seen = env.signals(noise=False)
+    env.cfg.hide_excitation = True
+    hidden = env.signals(noise=False)
+    for k in ("joint_pos", "joint_vel"):
+        np.testing.assert_array_equal(hidden[k][1:], seen[k][1:])
+    idx = sdk_indices(MODEL_LEGS[1])
+    np.testing.assert_array_equal(hidden["joint_pos"][0, idx], env.pool.q0[env.lift_plan[0]])
+    np.testing.assert_array_equal(hidden["joint_vel"][0, idx], 0.0)
+    rest = np.setdiff1d(np.arange(12), idx)
+    np.testing.assert_array_equal(hidden["joint_pos"][0, rest], seen["joint_pos"][0, rest])
+    assert not np.array_equal(hidden["joint_vel"][0, idx], seen["joint_vel"][0, idx])
 
 
 def test_projected_gravity():

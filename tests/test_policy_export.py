@@ -592,6 +592,30 @@ def test_derive_turns_the_tracking_adapter_on_and_off(exported, tmp_path):
     assert evaluation_env(off, ("FL",), 1, seed=1, nominal=True)[0].adapter is None
 
 
+def test_derive_hides_the_exciting_leg_and_the_evaluation_plays_it(exported, tmp_path):
+    """`derive --hide-excitation` (stop 67): the JSON's lift schedule shows the policy its lifted
+    leg held while it excites, the evaluation's env plays it and its page says so,
+    ``derived_from`` records that the source had it off; the network byte for byte."""
+    from policy_train.cli import main
+    from policy_train.evaluate import _derived, evaluation_env
+
+    d, _ = exported
+    src = json.loads((d / "pol.json").read_text())
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "v"),
+                 "--hide-excitation"]) == 0
+    meta = json.loads((tmp_path / "v.json").read_text())
+    assert meta["lift_schedule"] == {**src["lift_schedule"], "hide_excitation": True}
+    assert meta["derived_from"]["hide_excitation"] is False
+    assert _derived(meta).endswith("observed still, at its plan's centre pose, while it excites")
+    assert (tmp_path / "v.onnx").read_bytes() == (d / "pol.onnx").read_bytes()
+    assert evaluation_env(meta, ("FL",), 1, seed=1, nominal=True)[0].cfg.hide_excitation
+    assert main(["derive", str(tmp_path / "v.onnx"), "--out", str(tmp_path / "w"),
+                 "--no-hide-excitation"]) == 0
+    off = json.loads((tmp_path / "w.json").read_text())
+    assert off["lift_schedule"]["hide_excitation"] is False
+    assert not evaluation_env(off, ("FL",), 1, seed=1, nominal=True)[0].cfg.hide_excitation
+
+
 @pytest.mark.parametrize(("extra", "hint"), [
     ([], "--gains"), (["--shift", "0"], "--shift"), (["--gains", "0,0.5"], "--gains"), (["--gains", "20"], "--gains"),
     (["--gains", "nan,1"], "--gains"), (["--gains", "29,0.7/23,0.5"], "--gains"),
