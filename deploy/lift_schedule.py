@@ -150,13 +150,14 @@ class LiftSchedule:
     torque (:class:`deploy.leg_dynamics.LegDynamics`); a JSON without it has none. adapt: from
     2 s into the excitation on, also command the torque the leg's tracking shows the model
     lacks (:class:`deploy.tracking_adapter.TrackingAdapter`: damping, friction, inertia, a
-    torque constant off); a JSON without it has none. hide_excitation: while the excitation
-    plays, the policy observes the lifted leg at the plan's centre pose ``q0``, still (its
-    joint positions and velocities replaced), as it saw the leg in the hold before. v43's
-    answer to the motion it sees, not the leg's reaction on the body, is half the body's
-    rotation over the excitation; hidden, that half goes, but a policy that does not see its
-    leg sag on weak motors loses lifts it keeps when it sees it (docs/policy-training.md,
-    stop 67): no committed policy has it. A JSON without it observes the leg.
+    torque constant off); a JSON without it has none. excitation_seen (in [0, 1]): while the
+    excitation plays, the policy observes the lifted leg at ``q0 + excitation_seen (q - q0)``
+    rad and ``excitation_seen dq`` rad/s (:func:`deploy.observation.observe_lifted_leg`; q0 the
+    plan's centre pose, where the hold before held the leg): 1, the leg as measured; 0, still
+    at q0. The policy's answer to the motion it sees, not the leg's reaction on the body, is
+    half of v43's body rotation over the excitation; shown none of it the policy loses lifts
+    on weak motors, which it meets by seeing where the leg is (docs/policy-training.md, stop
+    67). A JSON without it observes the leg as measured.
     """
 
     shift: float = 1.0
@@ -173,11 +174,11 @@ class LiftSchedule:
     ground_clearance: float = ExcitationConfig.ground_clearance
     feedforward: bool = False
     adapt: bool = False
-    hide_excitation: bool = False
+    excitation_seen: float = 1.0
 
     def __post_init__(self) -> None:
         for k in ("shift", "lift", "hold", "lower", "kp", "kd", "t_r", "ground_clearance",
-                  "n_basis", "periods", "seed"):
+                  "n_basis", "periods", "seed", "excitation_seen"):
             v = getattr(self, k)  # a JSON string or null: one line here, not a TypeError later
             if isinstance(v, bool) or not isinstance(v, int | float | np.number):
                 raise ValueError(f"{k} must be a number, got {v!r}")  # noqa: TRY004
@@ -204,7 +205,9 @@ class LiftSchedule:
             raise ValueError(f"kp must be > 0 and kd >= 0 (finite), got kp {self.kp}, kd {self.kd}")
         if not (np.isfinite(self.ground_clearance) and self.ground_clearance >= 0):
             raise ValueError(f"ground_clearance must be >= 0 m, got {self.ground_clearance}")
-        for k in ("feedforward", "adapt", "hide_excitation"):
+        if not 0.0 <= self.excitation_seen <= 1.0:
+            raise ValueError(f"excitation_seen must be in [0, 1], got {self.excitation_seen}")
+        for k in ("feedforward", "adapt"):
             if not isinstance(getattr(self, k), bool):
                 # a bad JSON value, reported like the others (the loaders catch ValueError)
                 raise ValueError(  # noqa: TRY004

@@ -40,8 +40,8 @@ __all__ = [
     "build_observation",
     "check_terms",
     "default_terms",
-    "hide_lifted_leg",
     "history_length",
+    "observe_lifted_leg",
     "projected_gravity",
 ]
 
@@ -159,20 +159,24 @@ def build_observation(terms, signals: Mapping[str, np.ndarray], clip: float | No
     return obs.astype(np.float32)
 
 
-def hide_lifted_leg(signals: Mapping[str, np.ndarray], idx, q_held) -> dict:
-    """``signals`` with the lifted leg's joints observed at ``q_held``, still: its
-    ``joint_pos`` replaced by ``q_held`` and its ``joint_vel`` by 0 (a lift schedule's
-    ``hide_excitation``, :class:`deploy.lift_schedule.LiftSchedule`). idx: the leg's 3 columns
-    of the joints (SDK order), or (n, 3) of n rows of batched signals; q_held: rad, (3,) or
-    (n, 3). The other signals are the same objects."""
+def observe_lifted_leg(signals: Mapping[str, np.ndarray], idx, q_centre, seen: float) -> dict:
+    """``signals`` with the lifted leg's joints observed at ``seen`` of their excursion from
+    ``q_centre``: ``joint_pos`` ``q_centre + seen (q - q_centre)`` rad, ``joint_vel`` ``seen
+    dq`` rad/s (a lift schedule's ``excitation_seen``, :class:`deploy.lift_schedule.LiftSchedule`;
+    0: the leg still at ``q_centre``). idx: the leg's 3 columns of the joints (SDK order), or
+    (n, 3) of n rows of batched signals; q_centre: rad, (3,) or (n, 3). The other signals are
+    the same objects; the caller's arrays are not written."""
     q = np.array(signals["joint_pos"], dtype=float)
     dq = np.array(signals["joint_vel"], dtype=float)
     idx = np.asarray(idx)
+    c = np.asarray(q_centre, dtype=float)
     if q.ndim == 1:
-        q[idx], dq[idx] = q_held, 0.0
+        q[idx] = c + seen * (q[idx] - c)
+        dq[idx] *= seen
     else:
-        np.put_along_axis(q, idx, np.asarray(q_held, dtype=float), axis=1)
-        np.put_along_axis(dq, idx, 0.0, axis=1)
+        leg = np.take_along_axis(q, idx, axis=1)
+        np.put_along_axis(q, idx, c + seen * (leg - c), axis=1)
+        np.put_along_axis(dq, idx, seen * np.take_along_axis(dq, idx, axis=1), axis=1)
     return {**signals, "joint_pos": q, "joint_vel": dq}
 
 

@@ -72,7 +72,7 @@ from calib.joints import (
 from calib.support import go2_support
 from deploy.lift_gate import DEFAULT_GATE, GateLimits, LiftGate
 from deploy.lift_schedule import COMMANDS_PER_TICK, LegTarget, abort_targets
-from deploy.observation import build_observation, hide_lifted_leg, projected_gravity
+from deploy.observation import build_observation, observe_lifted_leg, projected_gravity
 from deploy.supervisor import DAMP_KD, SafetySupervisor
 from deploy.tip_guard import DEFAULT_TIP_LIMITS, RETRY_SHIFT_S, TipGuard, TipLimits
 from deploy.tracking_adapter import TrackingAdapter
@@ -571,8 +571,9 @@ class Session:
             "commands": np.zeros(3),
             "lift_command": m.lift_value(lift_leg if lift_on else None),
         }
-        if phase == "excite" and m.schedule.hide_excitation:
-            signals = hide_lifted_leg(signals, sdk_indices(lift_leg), m.schedule.plan(lift_leg).q0)
+        if phase == "excite" and m.schedule.excitation_seen != 1.0:
+            signals = observe_lifted_leg(signals, sdk_indices(lift_leg),
+                                         m.schedule.plan(lift_leg).q0, m.schedule.excitation_seen)
         obs = build_observation(m.observation, signals)
         bad = SafetySupervisor.check_finite("observation", obs)
         actions = None

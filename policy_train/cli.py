@@ -19,11 +19,12 @@
   a2i-train compare A.json B.json  (two transfer runs on the same draws, episode by episode)
   a2i-train derive policies/NAME.onnx --out policies/OTHER [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD]
                    [--t-r S] [--periods N] [--shift S|LEG=S[,LEG=S]] [--[no-]adapt]
-                   [--[no-]hide-excitation]
+                   [--excitation-seen F]
                                    (the same network with other deploy gains, excitation speed
                                     or length, or time to shift the body before the lift, every leg's
-                                    or some legs', the lifted leg's tracking adapter, or the
-                                    lifted leg observed still while it excites)
+                                    or some legs', the lifted leg's tracking adapter, or how much
+                                    of the lifted leg's excursion the policy observes while it
+                                    excites)
   a2i-train refine policies/NAME.onnx --out policies/OTHER [--generations 40] [--leg FL]
                    [--pairs 4] [--episodes 24] [--fail-cost 0.1] [--dr FIELD=VALUE ...]
                    [--margin-cost C] [--margin-target 0.08] [--tilt-cost C] [--tilt-target 1]
@@ -217,11 +218,11 @@ def _derive(a) -> int:
     from policy_train.export import derive_policy
 
     if (a.gains, a.lift_gains, a.t_r, a.periods, a.shift, a.adapt, a.stand,
-            a.hide_excitation) == (None,) * 8:
+            a.excitation_seen) == (None,) * 8:
         raise SystemExit("a2i-train derive: give --gains, --lift-gains, --t-r, --periods, "
-                         "--shift, --[no-]adapt, --[no-]hide-excitation and/or --stand")
+                         "--shift, --[no-]adapt, --excitation-seen and/or --stand")
     onnx_path, json_path = derive_policy(a.onnx, a.out, a.gains, a.lift_gains, a.t_r, a.shift,
-                                         a.adapt, a.stand, a.periods, a.hide_excitation)
+                                         a.adapt, a.stand, a.periods, a.excitation_seen)
     print(f"wrote {onnx_path} and {json_path} (the network of {a.onnx})")
     return 0
 
@@ -353,6 +354,7 @@ def _number(lo: float, hi: float, what: str):
 
 _MINUTES = _number(0.0, math.inf, "must be a number of minutes >= 0")
 _STAND_GAIN = _number(0.01, 5.0, "a home stand's gain must be in [0.01, 5)")
+_SEEN = _number(0.0, math.nextafter(1.0, 2.0), "must be in [0, 1]")
 
 
 def _stand(text: str) -> dict:
@@ -747,10 +749,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="whether the lifted leg's tracking adapter runs: from 2 s into the "
                    "excitation, the torque its tracking shows the leg's model lacks (damping, "
                    "friction, inertia, torque constant) is fed forward (default: the source's)")
-    g.add_argument("--hide-excitation", action=argparse.BooleanOptionalAction, default=None,
-                   help="whether the policy observes the lifted leg still, at its plan's centre "
-                   "pose, while it excites (as in the hold before), instead of its measured "
-                   "joints: v43 rocks the body half as much so, but loses lifts on weak motors "
+    g.add_argument("--excitation-seen", type=_SEEN, default=None, metavar="F",
+                   help="the fraction in [0, 1] of the lifted leg's excursion from its plan's "
+                   "centre pose (and of its joint velocities) that the policy observes while it "
+                   "excites: 1 as measured, 0 the leg still at that pose, as in the hold before "
                    "(docs/policy-training.md, stop 67; default: the source's)")
     g.add_argument("--stand", type=_stand, default=None, metavar="GAIN|hold",
                    help="while no leg is lifted, the graph stands the robot itself instead of "

@@ -198,9 +198,10 @@ class EnvConfig:
     # evaluation plays the JSON's; training has not used it (the network never sees the lifted
     # leg's motors)
     lift_adapt: bool = False
-    # the lifted leg observed at its plan's centre pose, still, while it excites (LiftSchedule's
-    # hide_excitation; deploy.observation.hide_lifted_leg): the evaluation plays the JSON's
-    hide_excitation: bool = False
+    # the fraction of the lifted leg's excursion from its plan's centre pose the policy observes
+    # while it excites (LiftSchedule's excitation_seen; deploy.observation.observe_lifted_leg):
+    # the evaluation plays the JSON's; training has observed the leg as measured (1)
+    excitation_seen: float = 1.0
     shift_s: float = 1.0
     # {leg: s} lifts whose shift is not shift_s (the evaluation plays the JSON's shift_by_leg)
     shift_by_leg: dict | None = None

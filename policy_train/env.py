@@ -42,7 +42,7 @@ from deploy.observation import (
     ObservationHistory,
     build_observation,
     default_terms,
-    hide_lifted_leg,
+    observe_lifted_leg,
     projected_gravity,
 )
 from deploy.tracking_adapter import TrackingAdapter
@@ -828,24 +828,25 @@ class TripodEnv:
             k = self.noise_scale[:, None]
             s = {name: s[name] + self.rng.uniform(-1, 1, s[name].shape) * getattr(dr, field) * k
                  for name, field in OBS_NOISE}
-        if self.cfg.hide_excitation:
-            s = self._hide_excitation(s)
+        if self.cfg.excitation_seen != 1.0:
+            s = self._observe_excitation(s)
         return self._signals(self.lin_vel_b, s, self.actions, np.arange(self.N))
 
-    def _hide_excitation(self, s: dict) -> dict:
-        """Model-order signals ``s`` with each exciting env's lifted leg observed at its plan's
-        ``q0``, still, as deploy shows it to the policy under a schedule's ``hide_excitation``
-        (:func:`deploy.observation.hide_lifted_leg`)."""
+    def _observe_excitation(self, s: dict) -> dict:
+        """Model-order signals ``s`` with each exciting env's lifted leg observed at
+        ``cfg.excitation_seen`` of its excursion from its plan's ``q0``, as deploy shows it to
+        the policy under a schedule's ``excitation_seen``
+        (:func:`deploy.observation.observe_lifted_leg`)."""
         rows = np.flatnonzero((self.phase == PHASES.index("excite")) & (self.lift_leg >= 0))
         if not len(rows):
             return s
         cols = 3 * self.lift_leg[rows, None] + np.arange(3)
-        hidden = hide_lifted_leg({k: s[k][rows] for k in ("joint_pos", "joint_vel")}, cols,
-                                 self.pool.q0[self.lift_plan[rows]])
+        seen = observe_lifted_leg({k: s[k][rows] for k in ("joint_pos", "joint_vel")}, cols,
+                                  self.pool.q0[self.lift_plan[rows]], self.cfg.excitation_seen)
         out = dict(s)
         for k in ("joint_pos", "joint_vel"):
             out[k] = np.array(s[k], dtype=float)
-            out[k][rows] = hidden[k]
+            out[k][rows] = seen[k]
         return out
 
     def _signals(self, lin_vel_b, s: dict, previous_actions, ids) -> dict[str, np.ndarray]:

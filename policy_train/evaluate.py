@@ -83,7 +83,7 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
     cfg.shift_s, cfg.lift_s, cfg.hold_s, cfg.lower_s = sched.shift, sched.lift, sched.hold, sched.lower
     cfg.shift_by_leg = sched.shift_by_leg
     cfg.lift_kp, cfg.lift_kd, cfg.lift_feedforward = sched.kp, sched.kd, sched.feedforward
-    cfg.lift_adapt, cfg.hide_excitation = sched.adapt, sched.hide_excitation
+    cfg.lift_adapt, cfg.excitation_seen = sched.adapt, sched.excitation_seen
     pool = PlanPool.from_plans([sched.plan(leg) for leg in MODEL_LEGS], cfg.physics_dt)
     env = TripodEnv(cfg, plan_pool=pool)
     env.obs_terms = meta["observation"]["terms"]  # the JSON's terms, as on board
@@ -348,10 +348,10 @@ def _derived(meta: dict) -> str:
     if bool(d.get("adapt", False)) != bool(sched.get("adapt", False)):
         changed.append("the lifted leg's tracking adapter " + ("on" if sched.get("adapt")
                                                                 else "off"))
-    if bool(d.get("hide_excitation", False)) != bool(sched.get("hide_excitation", False)):
-        changed.append("the lifted leg " + ("observed still, at its plan's centre pose, while it "
-                                            "excites" if sched.get("hide_excitation")
-                                            else "observed as measured while it excites"))
+    seen = float(sched.get("excitation_seen", 1.0))
+    if float(d.get("excitation_seen", 1.0)) != seen:
+        changed.append(f"the lifted leg observed at {seen:g} of its excursion while it excites"
+                       if seen != 1.0 else "the lifted leg observed as measured while it excites")
     stand = meta.get("stand") or {"mode": "network"}
     if stand != (d.get("stand") or {"mode": "network"}):
         if stand.get("mode") == "home":

@@ -248,7 +248,7 @@ def onnx_bytes(actor: torch.nn.Module, n_in: int) -> bytes:
 
 def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                   lift_gains=None, t_r=None, shift=None, adapt=None,
-                  stand=None, periods=None, hide_excitation=None) -> tuple[Path, Path]:
+                  stand=None, periods=None, excitation_seen=None) -> tuple[Path, Path]:
     """Write ``<out_stem>.onnx`` (the source's network, byte for byte) and ``<out_stem>.json``
     (the source's, with other deploy gains or excitation speed) for a policy whose
     checkpoints are gone.
@@ -271,12 +271,12 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     policy may have it); stand: the JSON's ``stand`` (:func:`policy_train.stand.stand_spec`,
     ``home`` or ``hold``): what the graph plays while no leg is lifted, instead of the network's
     own four-leg stand (the only change to the ONNX: nodes after the network);
-    hide_excitation: whether the policy observes the lifted leg held at its plan's centre pose
-    while it excites (the JSON's ``lift_schedule.hide_excitation``,
-    :func:`deploy.observation.hide_lifted_leg`): the network sees a leg it saw in every hold.
+    excitation_seen: the fraction (in [0, 1]) of the lifted leg's excursion from its plan's
+    centre pose that the policy observes while it excites (the JSON's
+    ``lift_schedule.excitation_seen``, :func:`deploy.observation.observe_lifted_leg`).
     The JSON's ``derived_from`` names the source, its commit, the gains, t_r, periods, shift (and
-    ``shift_by_leg``), adapt, hide_excitation and stand it had; its evaluation figures are dropped (they were
-    measured with the source's settings).
+    ``shift_by_leg``), adapt, excitation_seen and stand it had; its evaluation figures are
+    dropped (they were measured with the source's settings).
     ValueError on a source that is not an exported policy or on gains deploy refuses."""
     from deploy.policy import PolicyMeta
 
@@ -299,7 +299,7 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                             **({"shift_by_leg": sched.shift_by_leg} if sched.shift_by_leg
                                else {}),
                             "adapt": sched.adapt,
-                            "hide_excitation": sched.hide_excitation,
+                            "excitation_seen": sched.excitation_seen,
                             "stand": meta.get("stand", {"mode": "network"})}
     if stand is not None:
         from policy_train.stand import apply_stand, stand_spec
@@ -354,9 +354,8 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
         meta["lift_schedule"] = ls
     if adapt is not None:
         meta["lift_schedule"] = {**meta["lift_schedule"], "adapt": bool(adapt)}
-    if hide_excitation is not None:
-        meta["lift_schedule"] = {**meta["lift_schedule"],
-                                 "hide_excitation": bool(hide_excitation)}
+    if excitation_seen is not None:
+        meta["lift_schedule"] = {**meta["lift_schedule"], "excitation_seen": float(excitation_seen)}
     meta.update(name=name, onnx=f"{name}.onnx", commit=git_commit(), evaluation={},
                 created_utc=datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%dT%H:%M:%SZ"))
     meta.pop("evaluation_nominal", None)

@@ -56,7 +56,7 @@ from deploy.lift_schedule import (
     blend_accelerations,
     blend_targets,
 )
-from deploy.observation import build_observation, hide_lifted_leg, projected_gravity
+from deploy.observation import build_observation, observe_lifted_leg, projected_gravity
 from deploy.policy import PolicyMeta, PolicyRunner
 from deploy.tip_guard import TipGuard
 from deploy.tracking_adapter import TrackingAdapter
@@ -374,8 +374,8 @@ def run_policy_a2i(
             signals = policy_signals(sim, runner, lift_value if lift_on else none_value)
             if disturbance is not None:
                 signals = disturbance.noisy(signals, rng)
-            if sched.hide_excitation and phase == _EXCITE:
-                signals = hide_lifted_leg(signals, idx_s, plan.q0)
+            if sched.excitation_seen != 1.0 and phase == _EXCITE:
+                signals = observe_lifted_leg(signals, idx_s, plan.q0, sched.excitation_seen)
             obs = build_observation(pb.observation, signals)
             runner.step(runner.act(obs))
             if handback:

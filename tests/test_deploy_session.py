@@ -566,32 +566,32 @@ def test_feedforward_schedule_sends_the_lifted_leg_torque(tmp_path):
     assert not np.delete(cmd.tau, idx).any()
 
 
-@pytest.mark.parametrize("hide", [False, True])
-def test_hide_excitation_shows_the_policy_the_lifted_leg_held(tmp_path, hide):
-    """With the schedule's ``hide_excitation`` the policy observes the lifted leg at the plan's
-    ``q0``, still, on every excitation tick, while its commands still play the plan; before
-    and after the excitation, and without it, the policy observes the leg as measured."""
+@pytest.mark.parametrize("seen", [1.0, 0.5, 0.0])
+def test_excitation_seen_scales_the_lifted_leg_the_policy_observes(tmp_path, seen):
+    """With the schedule's ``excitation_seen`` the policy observes the lifted leg at that
+    fraction of its excursion from the plan's ``q0`` on every excitation tick, while its
+    commands still play the plan; before and after the excitation the leg as measured."""
     from deploy.hold_policy import write_hold_policy
 
     sched = LiftSchedule(shift=0.2, lift=0.2, hold=0.2, lower=0.2, periods=1,
-                         hide_excitation=hide)
+                         excitation_seen=seen)
     rig = Rig(write_hold_policy(tmp_path, "hide", schedule=sched), legs=("RL",))
     idx = sdk_indices("RL")
     q0 = sched.plan("RL").q0
     offset = np.asarray(rig.meta.observation["terms"][3]["offset"])[idx]
     rig.run_until(State.CALIBRATE)
-    seen = {"excite": [], "other": []}
+    frames = {"excite": [], "other": []}
     while rig.s.state is State.CALIBRATE:
         q_in = rig.q[idx].copy()
         cmd = rig.tick()
         if cmd.source.startswith("policy:"):
-            seen["excite" if cmd.source == "policy:excite" else "other"].append(
+            frames["excite" if cmd.source == "policy:excite" else "other"].append(
                 (cmd.obs[9 + idx], q_in, cmd.q[idx]))
-    excite = seen["excite"]
-    assert len(excite) > 20 and seen["other"]
+    excite = frames["excite"]
+    assert len(excite) > 20 and frames["other"]
     moved = np.ptp([c for _, _, c in excite], axis=0)
     assert moved.min() > 0.05  # the leg is commanded through the plan either way
-    for obs, q_in, _ in seen["other"]:
+    for obs, q_in, _ in frames["other"]:
         np.testing.assert_allclose(obs, q_in - offset, atol=1e-6)
     for obs, q_in, _ in excite:
-        np.testing.assert_allclose(obs, (q0 if hide else q_in) - offset, atol=1e-6)
+        np.testing.assert_allclose(obs, q0 + seen * (q_in - q0) - offset, atol=1e-6)

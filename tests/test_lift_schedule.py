@@ -55,10 +55,16 @@ def test_metadata_round_trip_and_errors(sched):
     with pytest.raises(ValueError, match="unknown lift_schedule keys"):
         LiftSchedule.from_metadata({**d, "bogus": 1})
     assert LiftSchedule.from_metadata({**d, "adapt": True}).adapt
-    hidden = LiftSchedule.from_metadata({**d, "hide_excitation": True})
-    assert hidden.hide_excitation and not sched.hide_excitation
-    assert LiftSchedule.from_metadata(hidden.to_metadata()) == hidden
-    for key in ("feedforward", "adapt", "hide_excitation"):
+    half = LiftSchedule.from_metadata({**d, "excitation_seen": 0.5})
+    assert half.excitation_seen == 0.5 and sched.excitation_seen == 1.0
+    assert LiftSchedule.from_metadata(half.to_metadata()) == half
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="excitation_seen must be in"):
+            LiftSchedule.from_metadata({**d, "excitation_seen": bad})
+    for bad in ("half", True, None):
+        with pytest.raises(ValueError, match="excitation_seen must be a number"):
+            LiftSchedule.from_metadata({**d, "excitation_seen": bad})
+    for key in ("feedforward", "adapt"):
         with pytest.raises(ValueError, match=f"{key} must be true or false"):
             LiftSchedule.from_metadata({**d, key: "yes"})
     with pytest.raises(ValueError):

@@ -12,7 +12,7 @@ from deploy.observation import (
     build_observation,
     check_terms,
     default_terms,
-    hide_lifted_leg,
+    observe_lifted_leg,
     projected_gravity,
 )
 
@@ -75,37 +75,43 @@ def test_bad_terms_raise():
         build_observation(default_terms(np.zeros(12)), {**_signals(), "joint_vel": np.zeros(11)})
 
 
-def test_hide_lifted_leg_one_and_batched():
-    """The lifted leg's 3 joints read ``q_held`` and 0 rad/s; every other joint and signal is
+def test_observe_lifted_leg_one_and_batched():
+    """The lifted leg's 3 joints read ``seen`` of their excursion from the centre and ``seen``
+    of their rates (0: still at the centre; 1: as measured); every other joint and signal is
     what was measured; the caller's arrays are not written."""
     from calib.joints import sdk_indices
 
     sig = _signals()
     before = {k: v.copy() for k, v in sig.items()}
-    idx = sdk_indices("FL")
-    out = hide_lifted_leg(sig, idx, [0.1, 0.8, -1.5])
-    np.testing.assert_array_equal(out["joint_pos"][idx], [0.1, 0.8, -1.5])
-    np.testing.assert_array_equal(out["joint_vel"][idx], 0.0)
+    idx, c = sdk_indices("FL"), np.array([0.1, 0.8, -1.5])
+    held = observe_lifted_leg(sig, idx, c, 0.0)
+    np.testing.assert_array_equal(held["joint_pos"][idx], c)
+    np.testing.assert_array_equal(held["joint_vel"][idx], 0.0)
+    half = observe_lifted_leg(sig, idx, c, 0.5)
+    np.testing.assert_allclose(half["joint_pos"][idx], (c + sig["joint_pos"][idx]) / 2)
+    np.testing.assert_allclose(half["joint_vel"][idx], sig["joint_vel"][idx] / 2)
+    whole = observe_lifted_leg(sig, idx, c, 1.0)
+    np.testing.assert_allclose(whole["joint_pos"], sig["joint_pos"], rtol=1e-15)
     rest = np.setdiff1d(np.arange(12), idx)
-    np.testing.assert_array_equal(out["joint_pos"][rest], sig["joint_pos"][rest])
-    np.testing.assert_array_equal(out["joint_vel"][rest], sig["joint_vel"][rest])
-    assert out["base_ang_vel"] is sig["base_ang_vel"]
+    np.testing.assert_array_equal(half["joint_pos"][rest], sig["joint_pos"][rest])
+    np.testing.assert_array_equal(half["joint_vel"][rest], sig["joint_vel"][rest])
+    assert half["base_ang_vel"] is sig["base_ang_vel"]
     for k, v in before.items():
         np.testing.assert_array_equal(sig[k], v)
     batch = _signals((2,), seed=1)
     cols = np.stack([sdk_indices("FL"), sdk_indices("RR")])
-    held = np.array([[0.1, 0.8, -1.5], [-0.2, 0.9, -1.6]])
-    out = hide_lifted_leg(batch, cols, held)
+    centre = np.array([[0.1, 0.8, -1.5], [-0.2, 0.9, -1.6]])
+    out = observe_lifted_leg(batch, cols, centre, 0.3)
     for r in range(2):
-        one = hide_lifted_leg({k: v[r] for k, v in batch.items()}, cols[r], held[r])
-        np.testing.assert_array_equal(out["joint_pos"][r], one["joint_pos"])
-        np.testing.assert_array_equal(out["joint_vel"][r], one["joint_vel"])
+        one = observe_lifted_leg({k: v[r] for k, v in batch.items()}, cols[r], centre[r], 0.3)
+        np.testing.assert_allclose(out["joint_pos"][r], one["joint_pos"], rtol=1e-15)
+        np.testing.assert_allclose(out["joint_vel"][r], one["joint_vel"], rtol=1e-15)
 
 
-def test_env_hides_only_the_exciting_legs():
-    """``EnvConfig.hide_excitation``: the env shows the policy each exciting env's lifted leg
-    at its plan's ``q0``, still (SDK order, as deploy does); an env in another phase, or with no
-    leg lifted, is observed as measured."""
+def test_env_scales_only_the_exciting_legs():
+    """``EnvConfig.excitation_seen``: the env shows the policy each exciting env's lifted leg
+    at that fraction of its excursion from its plan's ``q0`` (0 here: still at q0; SDK order,
+    as deploy does); an env in another phase, or with no leg lifted, is observed as measured."""
     from calib.joints import MODEL_LEGS, sdk_indices
     from deploy.lift_schedule import PHASES
     from policy_train.config import EnvConfig
@@ -116,7 +122,7 @@ def test_env_hides_only_the_exciting_legs():
     env.lift_leg[:] = [1, 3, -1]
     env.phase[:] = [PHASES.index("excite"), PHASES.index("hold"), PHASES.index("excite")]
     seen = env.signals(noise=False)
-    env.cfg.hide_excitation = True
+    env.cfg.excitation_seen = 0.0
     hidden = env.signals(noise=False)
     for k in ("joint_pos", "joint_vel"):
         np.testing.assert_array_equal(hidden[k][1:], seen[k][1:])

@@ -592,28 +592,36 @@ def test_derive_turns_the_tracking_adapter_on_and_off(exported, tmp_path):
     assert evaluation_env(off, ("FL",), 1, seed=1, nominal=True)[0].adapter is None
 
 
-def test_derive_hides_the_exciting_leg_and_the_evaluation_plays_it(exported, tmp_path):
-    """`derive --hide-excitation` (stop 67): the JSON's lift schedule shows the policy its lifted
-    leg held while it excites, the evaluation's env plays it and its page says so,
-    ``derived_from`` records that the source had it off; the network byte for byte."""
+def test_derive_sets_how_much_of_the_excitation_is_seen(exported, tmp_path, capsys):
+    """`derive --excitation-seen 0.5` (stop 67): the JSON's lift schedule shows the policy half
+    of its lifted leg's excursion while it excites, the evaluation's env plays it and its page
+    says so, ``derived_from`` records the source's 1; the network byte for byte; outside
+    [0, 1] argparse refuses it."""
     from policy_train.cli import main
     from policy_train.evaluate import _derived, evaluation_env
 
     d, _ = exported
     src = json.loads((d / "pol.json").read_text())
     assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "v"),
-                 "--hide-excitation"]) == 0
+                 "--excitation-seen", "0.5"]) == 0
     meta = json.loads((tmp_path / "v.json").read_text())
-    assert meta["lift_schedule"] == {**src["lift_schedule"], "hide_excitation": True}
-    assert meta["derived_from"]["hide_excitation"] is False
-    assert _derived(meta).endswith("observed still, at its plan's centre pose, while it excites")
+    assert meta["lift_schedule"] == {**src["lift_schedule"], "excitation_seen": 0.5}
+    assert meta["derived_from"]["excitation_seen"] == 1.0
+    assert _derived(meta).endswith("observed at 0.5 of its excursion while it excites")
     assert (tmp_path / "v.onnx").read_bytes() == (d / "pol.onnx").read_bytes()
-    assert evaluation_env(meta, ("FL",), 1, seed=1, nominal=True)[0].cfg.hide_excitation
+    assert evaluation_env(meta, ("FL",), 1, seed=1, nominal=True)[0].cfg.excitation_seen == 0.5
     assert main(["derive", str(tmp_path / "v.onnx"), "--out", str(tmp_path / "w"),
-                 "--no-hide-excitation"]) == 0
+                 "--excitation-seen", "1"]) == 0
     off = json.loads((tmp_path / "w.json").read_text())
-    assert off["lift_schedule"]["hide_excitation"] is False
-    assert not evaluation_env(off, ("FL",), 1, seed=1, nominal=True)[0].cfg.hide_excitation
+    assert off["lift_schedule"]["excitation_seen"] == 1.0
+    assert evaluation_env(off, ("FL",), 1, seed=1, nominal=True)[0].cfg.excitation_seen == 1.0
+    capsys.readouterr()
+    for bad in ("1.5", "-0.1", "x"):
+        with pytest.raises(SystemExit) as exc:
+            main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "z"),
+                  "--excitation-seen", bad])
+        assert exc.value.code == 2 and "--excitation-seen" in capsys.readouterr().err
+    assert not (tmp_path / "z.json").exists()
 
 
 @pytest.mark.parametrize(("extra", "hint"), [

@@ -323,18 +323,18 @@ def test_a_knee_on_the_floor_before_the_hold_fails_the_run(monkeypatch):
     assert not health.lifted_foot_touched      # their feet as it shifts, 20 mm from them)
 
 
-@pytest.mark.parametrize("hide", [False, True])
-def test_hide_excitation_shows_the_policy_the_lifted_leg_held(monkeypatch, hide):
-    """run_policy_a2i plays the schedule's ``hide_excitation`` as deploy does: over the
+@pytest.mark.parametrize("seen", [1.0, 0.0])
+def test_excitation_seen_0_shows_the_policy_the_lifted_leg_held(monkeypatch, seen):
+    """run_policy_a2i plays the schedule's ``excitation_seen`` as deploy does: at 0, over the
     excitation's ticks (and only there) the policy observes the lifted leg at the plan's ``q0``,
-    still; without it never."""
+    still; at 1 never."""
     if not POLICY.is_file():
         pytest.skip("no shipped policy")
     import policy_train.policy_motion as pm
     from calib.joints import sdk_indices
 
     pb = load_policy(POLICY)
-    pb.meta.schedule = dataclasses.replace(pb.meta.schedule, hide_excitation=hide)
+    pb.meta.schedule = dataclasses.replace(pb.meta.schedule, excitation_seen=seen)
     idx, q0 = sdk_indices("FL"), pb.meta.schedule.plan("FL").q0
     held = []
     build = pm.build_observation
@@ -348,4 +348,4 @@ def test_hide_excitation_shows_the_policy_the_lifted_leg_held(monkeypatch, hide)
     _, health = run_policy_a2i(pb, "FL", settle_s=SETTLE, periods=1, after_s=0.0)
     assert not health.fell
     excite_ticks = dataclasses.replace(pb.meta.schedule, periods=1).plan("FL").duration * 50
-    assert abs(sum(held) - (excite_ticks if hide else 0)) <= 2, (sum(held), excite_ticks)
+    assert abs(sum(held) - (excite_ticks if seen == 0 else 0)) <= 2, (sum(held), excite_ticks)
