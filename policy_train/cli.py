@@ -6,7 +6,7 @@
                    [--lift-leg-weights FL,FR,RL,RR] [--[no-]mirror-augmentation] [--run-dir D]
                    [--dr FIELD=VALUE ...] [--reward TERM=WEIGHT ...]
                    [--gains KP,KD[/KP,KD/KP,KD]] [--lift-gains KP,KD] [--device cpu|cuda]
-                   [--export policies/NAME]
+                   [--excitation-seen F] [--export policies/NAME]
   a2i-train export CHECKPOINT [CHECKPOINT ...] --out policies/NAME [--legs RL,RR]
                    [--mirror-legs FR,RR]   (several checkpoints of one run: weights averaged)
   a2i-train eval policies/NAME.onnx [--episodes 100] [--legs FL,FR,RL,RR] [--no-write]
@@ -99,6 +99,7 @@ def _tripod(a) -> int:
                  "entropy_coef": (cfg.ppo, "entropy_coef"),
                  "lift_leg_weights": (cfg.env, "lift_leg_weights"),
                  "threads": (cfg.env, "threads"), "blocks": (cfg.env, "blocks"),
+                 "excitation_seen": (cfg.env, "excitation_seen"),
                  "learning_rate": (cfg.ppo, "learning_rate")}
     for arg, (section, field) in overrides.items():
         if getattr(a, arg) is not None:
@@ -628,6 +629,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="the lifted leg's PD gains in training (a new run's 40,1; on --resume "
                         "or --from-policy they replace the run's own; deploy's JSON may name "
                         "others, a2i-train export --lift-gains)")
+    t.add_argument("--excitation-seen", type=_SEEN, default=None, metavar="F",
+                   help="the fraction in [0, 1] of the lifted leg's excursion from its plan's "
+                        "centre pose that the policy observes while it excites (a new run's 1, "
+                        "the leg as measured; the critic always sees it so); the export's JSON "
+                        "carries it, so deploy shows the leg as training did "
+                        "(docs/policy-training.md, stop 67)")
     t.add_argument("--threads", type=_positive, default=None,
                    help="threads of the simulation and of the update (default: all CPUs); "
                         "1 each for two runs side by side on two cores")

@@ -229,6 +229,11 @@ class Distiller:
         if cfg.calf_upper_margin is not None:
             e.calf_upper_margin = float(cfg.calf_upper_margin)
         sched = self.meta["lift_schedule"]
+        if float(sched.get("excitation_seen", 1.0)) != 1.0 or e.excitation_seen != 1.0:
+            # the labels are the teacher's actions on frames of the leg as measured
+            raise ValueError(f"the teacher {teacher.name} is shown only part of its lifted "
+                             "leg's excursion while it excites (excitation_seen): distil from "
+                             "one that observes it as measured")
         e.lift_kp, e.lift_kd = float(sched["kp"]), float(sched["kd"])
         e.lift_feedforward = bool(sched.get("feedforward", False))  # as deploy plays it
         e.lift_adapt = bool(sched.get("adapt", False))

@@ -819,8 +819,10 @@ class TripodEnv:
     def lift_command_value(self) -> np.ndarray:
         return np.where(self.lift_leg >= 0, self.lift_leg + 1, 0).astype(float)
 
-    def signals(self, noise: bool = True) -> dict[str, np.ndarray]:
-        """The robot signals deploy would see (SDK order), with observation noise if enabled."""
+    def signals(self, noise: bool = True, policy: bool = True) -> dict[str, np.ndarray]:
+        """The robot signals deploy would see (SDK order), with observation noise if enabled;
+        policy: the lifted leg as the policy is shown it (``cfg.excitation_seen``), else as
+        measured (the critic's)."""
         dr = self.cfg.dr
         s = {"base_ang_vel": self.ang_vel_b, "projected_gravity": self.gravity_b,
              "joint_pos": self.q, "joint_vel": self.dq}  # joints in model order here
@@ -828,7 +830,7 @@ class TripodEnv:
             k = self.noise_scale[:, None]
             s = {name: s[name] + self.rng.uniform(-1, 1, s[name].shape) * getattr(dr, field) * k
                  for name, field in OBS_NOISE}
-        if self.cfg.excitation_seen != 1.0:
+        if policy and self.cfg.excitation_seen != 1.0:
             s = self._observe_excitation(s)
         return self._signals(self.lin_vel_b, s, self.actions, np.arange(self.N))
 
@@ -890,12 +892,14 @@ class TripodEnv:
     def observations(self) -> dict[str, np.ndarray]:
         """{"policy": (N, 49 * obs_history) float32, "critic": (N, 49 + PRIV_SIZE) float32}.
 
-        The critic sees the newest frame without noise. With ``obs_history`` > 1 each call
-        pushes a frame into the policy's history: call it once per step (``step`` does)."""
+        The critic sees the newest frame without noise, the lifted leg as measured. With
+        ``obs_history`` > 1 each call pushes a frame into the policy's history: call it once
+        per step (``step`` does)."""
         pol = build_observation(self.obs_terms, self.signals(True), clip=self.cfg.obs_clip)
         if self.obs_hist is not None:
             pol = self.obs_hist.push(pol)
-        clean = build_observation(self.obs_terms, self.signals(False), clip=self.cfg.obs_clip)
+        clean = build_observation(self.obs_terms, self.signals(False, policy=False),
+                                  clip=self.cfg.obs_clip)
         cfg = self.cfg
         tph = np.where(self.lift_leg >= 0, self.lift_t - np.concatenate(
             [np.zeros((self.N, 1)), np.cumsum(self.lift_dur, 1)], 1)[

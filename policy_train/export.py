@@ -117,7 +117,8 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
     sched = LiftSchedule(shift=e.shift_s, shift_by_leg=e.shift_by_leg, lift=e.lift_s,
                          hold=e.hold_s, lower=e.lower_s, kp=e.lift_kp, kd=e.lift_kd, t_r=EVAL_T_R, n_basis=e.n_basis,
                          periods=EVAL_PERIODS, seed=0, ground_clearance=e.ground_clearance,
-                         feedforward=e.lift_feedforward, adapt=e.lift_adapt)
+                         feedforward=e.lift_feedforward, adapt=e.lift_adapt,
+                         excitation_seen=e.excitation_seen)
     fl = lambda a: [float(x) for x in np.asarray(a, dtype=float)]
     return {
         "schema_version": 1,

@@ -79,6 +79,16 @@ def test_actuation_labels_are_the_teachers_actions_where_the_action_takes_effect
         Distiller(DistillConfig(teacher=TEACHER, num_envs=2, labels="later"), tmp_path)
 
 
+def test_a_teacher_shown_part_of_its_leg_is_refused(tmp_path):
+    """A teacher whose JSON shows the policy part of the lifted leg's excursion (stop 67) is
+    refused: the labels would be its actions on frames it never sees on board."""
+    from policy_train.export import derive_policy
+
+    onnx, _ = derive_policy(TEACHER, tmp_path / "half", excitation_seen=0.5)
+    with pytest.raises(ValueError, match="excitation_seen"):
+        Distiller(DistillConfig(teacher=str(onnx), num_envs=2), tmp_path / "run")
+
+
 def _stepped_student(n_in: int):
     """A small student (hidden 16, 8) after three Adam steps, so its optimiser has moments;
     returns the network, the optimiser and the ``mlp.*`` state dict of a checkpoint."""

@@ -132,6 +132,13 @@ def test_env_scales_only_the_exciting_legs():
     rest = np.setdiff1d(np.arange(12), idx)
     np.testing.assert_array_equal(hidden["joint_pos"][0, rest], seen["joint_pos"][0, rest])
     assert not np.array_equal(hidden["joint_vel"][0, idx], seen["joint_vel"][0, idx])
+    critic = env.signals(noise=False, policy=False)  # the critic sees the leg as measured
+    np.testing.assert_array_equal(critic["joint_pos"], seen["joint_pos"])
+    obs = env.observations()
+    np.testing.assert_array_equal(
+        obs["critic"][:, :49], build_observation(env.obs_terms, critic, clip=env.cfg.obs_clip))
+    assert not np.array_equal(obs["critic"][0, :49], build_observation(
+        env.obs_terms, hidden, clip=env.cfg.obs_clip)[0])
 
 
 def test_projected_gravity():

@@ -291,7 +291,8 @@ def test_cli_missing_inputs_exit_2_with_one_line(tmp_path):
                  # a save interval of 0 divided by zero after the first iteration; nan minutes
                  # meant no limit
                  ["tripod", "--save-interval", "0"], ["tripod", "--max-minutes", "nan"],
-                 ["tripod", "--num-envs", "-4"], ["distill", "--max-minutes", "-1"]):
+                 ["tripod", "--num-envs", "-4"], ["distill", "--max-minutes", "-1"],
+                 ["tripod", "--excitation-seen", "2"]):
         with pytest.raises(SystemExit) as exc:
             main(argv)
         assert exc.value.code == 2
@@ -590,6 +591,23 @@ def test_derive_turns_the_tracking_adapter_on_and_off(exported, tmp_path):
     assert off["lift_schedule"]["adapt"] is False and off["derived_from"]["adapt"] is True
     assert (tmp_path / "h.onnx").read_bytes() == (d / "pol.onnx").read_bytes()
     assert evaluation_env(off, ("FL",), 1, seed=1, nominal=True)[0].adapter is None
+
+
+def test_training_at_an_excitation_seen_exports_it(tmp_path):
+    """`tripod --excitation-seen 0.5`: the run trains with the lifted leg half shown (its
+    configuration says so) and the export's lift schedule carries it, so deploy and the
+    evaluation show the leg as training did."""
+    from policy_train.config import TrainConfig
+
+    cmd = [sys.executable, "-m", "policy_train.cli", "tripod", "--iterations", "1",
+           "--num-envs", "8", "--plans-per-leg", "1", "--steps-per-env", "4",
+           "--excitation-seen", "0.5", "--run-dir", str(tmp_path / "run"),
+           "--export", str(tmp_path / "pol")]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    meta = json.loads((tmp_path / "pol.json").read_text())
+    assert meta["lift_schedule"]["excitation_seen"] == 0.5
+    assert TrainConfig.from_dict(meta["train_config"]).env.excitation_seen == 0.5
 
 
 def test_derive_sets_how_much_of_the_excitation_is_seen(exported, tmp_path, capsys):
