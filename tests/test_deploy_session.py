@@ -575,7 +575,7 @@ def test_excitation_seen_scales_the_lifted_leg_the_policy_observes(tmp_path, see
 
     sched = LiftSchedule(shift=0.2, lift=0.2, hold=0.2, lower=0.2, periods=1,
                          excitation_seen=seen)
-    rig = Rig(write_hold_policy(tmp_path, "hide", schedule=sched), legs=("RL",))
+    rig = Rig(write_hold_policy(tmp_path, "seen", schedule=sched), legs=("RL",))
     idx = sdk_indices("RL")
     q0 = sched.plan("RL").q0
     offset = np.asarray(rig.meta.observation["terms"][3]["offset"])[idx]
