@@ -138,6 +138,13 @@ def _tripod(a) -> int:
         print(f"started from the policy {a.from_policy} (iteration {tr.iteration}): its actor, "
               f"exploration std {a.init_std}, a new critic trained alone for "
               f"{a.critic_warmup} iterations first", flush=True)
+        given = {"--gains": a.gains, "--lift-gains": a.lift_gains,
+                 "--excitation-seen": a.excitation_seen}
+        apart = {k: v for k, v in start["deploy_flags"].items() if given[k] is None}
+        if apart:
+            print(f"note: {Path(a.from_policy).name} deploys at other settings than it trained "
+                  f"at, and this run trains at its training configuration's; to train as it "
+                  f"deploys, give {' '.join(f'{k} {v}' for k, v in apart.items())}", flush=True)
     if a.learning_rate is not None:  # over the rate a checkpoint's schedule had reached
         tr.set_learning_rate(a.learning_rate)
     tr.total_iterations = a.total_iterations or (tr.iteration + a.iterations)

@@ -18,12 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["policy_plan_pool", "policy_start"]
+__all__ = ["deploy_flags", "policy_plan_pool", "policy_start"]
 
 
 def policy_start(onnx_path: str | Path) -> dict:
     """A start point from an exported policy: ``{"actor_mlp": {name: tensor}, "train_config",
-    "iter", "seed", "history", "warm_start": {"policy", "averaged_iterations"}}``.
+    "deploy_flags", "iter", "seed", "history", "warm_start": {"policy", "averaged_iterations"}}``
+    (``deploy_flags``: :func:`deploy_flags`).
 
     The actor MLP's state dict uses rsl-rl's ``MLP`` names (``0.weight``, ``0.bias``, ...).
     ``history`` is the JSON's training curve, its records marked ``from_policy`` (already
@@ -46,8 +47,11 @@ def policy_start(onnx_path: str | Path) -> dict:
         if key not in meta:
             raise ValueError(f"{meta_path}: no {key!r}: not an exported training policy")
     if meta.get("refined_from"):  # its residual (policy_train.refine) is not the MLP's
+        # PPO trains the MLP alone: a start from the network drops the residuals, which
+        # a2i-train refine then tunes again over the new network
         raise ValueError(f"{onnx_path}: a refined policy (a residual over "
-                         f"{meta['refined_from']['policy']}'s network); start from that policy")
+                         f"{meta['refined_from']['policy']}'s network); start from that network "
+                         f"and refine the result again")
     try:
         graph = onnx.load(str(onnx_path)).graph
     except Exception as e:  # protobuf's DecodeError and the like: not an ONNX model
@@ -69,12 +73,45 @@ def policy_start(onnx_path: str | Path) -> dict:
     return {
         "actor_mlp": weights,
         "train_config": meta["train_config"],
+        "deploy_flags": deploy_flags(meta),
         "iter": int(meta["iterations"]),
         "seed": int(meta.get("seed", 0)),
         "history": history,
         "warm_start": {"policy": onnx_path.name,
                        "averaged_iterations": meta.get("averaged_iterations")},
     }
+
+
+def _gains_flag(kp, kd) -> str | None:
+    """``--gains`` text for 12 joint gains (N m/rad, N m s/rad) that repeat hip, thigh, calf on
+    every leg (either joint order); None where they do not."""
+    kp, kd = (np.broadcast_to(np.asarray(g, dtype=float), (12,)).reshape(4, 3) for g in (kp, kd))
+    if not (np.all(kp == kp[0]) and np.all(kd == kd[0])):
+        return None
+    pairs = [f"{p:g},{d:g}" for p, d in zip(kp[0], kd[0], strict=True)]
+    return pairs[0] if len(set(pairs)) == 1 else "/".join(pairs)
+
+
+def deploy_flags(meta: dict) -> dict[str, str]:
+    """``{flag: value}``: the ``a2i-train tripod`` flags under which a run trains as the exported
+    policy ``meta`` (its JSON) deploys, where that differs from its training configuration.
+
+    A derived policy (``a2i-train derive``) deploys the same network at other gains, lift gains
+    or ``excitation_seen`` than it trained at, and ``--from-policy`` trains at the training
+    configuration's (as v21 was trained from v20 with ``--gains``): a fine-tune of such a policy
+    that forgets the flags learns on joints its deploy never plays."""
+    env = meta["train_config"]["env"]
+    sched = meta.get("lift_schedule") or {}
+    out = {}
+    if _gains_flag(meta["kp"], meta["kd"]) != _gains_flag(env["kp"], env["kd"]):
+        out["--gains"] = _gains_flag(meta["kp"], meta["kd"]) or "per joint, as its JSON's kp, kd"
+    if "kp" in sched and (float(sched["kp"]), float(sched["kd"])) != (
+            float(env["lift_kp"]), float(env["lift_kd"])):
+        out["--lift-gains"] = f"{float(sched['kp']):g},{float(sched['kd']):g}"
+    seen = float(sched.get("excitation_seen", 1.0))
+    if seen != float(env.get("excitation_seen", 1.0)):
+        out["--excitation-seen"] = f"{seen:g}"
+    return out
 
 
 def policy_plan_pool(env_cfg, policy_seed: int, path: str | Path) -> Path:

@@ -950,6 +950,47 @@ def test_from_policy_continues_an_exported_policy(exported, tmp_path):
     assert curve[:len(src_curve)] == src_curve and curve[-1]["iteration"] == 3
 
 
+def test_deploy_flags_name_what_a_derived_policy_deploys_apart_from_its_training():
+    """The committed policies' networks trained at kp 20 / kd 0.5 and deploy derived gains: the
+    flags that would train at the deploy's are named, joint types in hip/thigh/calf order;
+    a policy deployed as trained needs none; gains that differ between legs are named as
+    such, not as a flag value they are not."""
+    from policy_train.warm_start import deploy_flags
+
+    pol = Path(__file__).resolve().parents[1] / "policies"
+    v43 = json.loads((pol / "tripod_go2_v43.json").read_text())
+    assert deploy_flags(v43) == {"--gains": "29,8/29,8/26,1.2", "--lift-gains": "80,2"}
+    assert deploy_flags(json.loads((pol / "tripod_go2_v7.json").read_text())) == {}
+    seen = {**v43, "lift_schedule": {**v43["lift_schedule"], "excitation_seen": 0.5}}
+    assert deploy_flags(seen)["--excitation-seen"] == "0.5"
+    uneven = {**v43, "kp": [29.0] * 11 + [30.0]}
+    assert deploy_flags(uneven)["--gains"].startswith("per joint")
+    trained = {**v43, "train_config": {**v43["train_config"], "env": {
+        **v43["train_config"]["env"], "kp": [29.0, 29.0, 26.0] * 4, "kd": [8.0, 8.0, 1.2] * 4,
+        "lift_kp": 80.0, "lift_kd": 2.0}}}
+    assert deploy_flags(trained) == {}
+
+
+def test_from_policy_of_a_derived_policy_names_the_deploy_settings_it_does_not_train_at(
+        exported, tmp_path):
+    """``--from-policy`` trains at the policy's training configuration; a derived policy
+    deploys other gains and what it is shown, so the run says which flags it was not given."""
+    from policy_train.cli import main
+
+    d, _ = exported
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"), "--gains",
+                 "29,8/29,8/26,1.2", "--lift-gains", "80,2", "--excitation-seen", "0.5"]) == 0
+    p = subprocess.run([sys.executable, "-m", "policy_train.cli", "tripod", "--from-policy",
+                        str(tmp_path / "g.onnx"), "--lift-gains", "80,2", "--critic-warmup", "0",
+                        "--iterations", "1", "--num-envs", "8", "--plans-per-leg", "1",
+                        "--steps-per-env", "8", "--run-dir", str(tmp_path / "run")],
+                       capture_output=True, text=True, timeout=240, check=False)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    note = [x for x in p.stdout.splitlines() if x.startswith("note: g.onnx deploys")]
+    assert len(note) == 1, p.stdout[-2000:]
+    assert note[0].endswith("give --gains 29,8/29,8/26,1.2 --excitation-seen 0.5"), note[0]
+
+
 def test_from_policy_bad_inputs_exit_2_with_one_line(exported, tmp_path):
     d, _ = exported
     run = lambda *args: subprocess.run([sys.executable, "-m", "policy_train.cli", "tripod", *args],
