@@ -676,6 +676,7 @@ class DeployRunner:
             inp = TickInput(
                 q=None if v is None else v.q.astype(float),
                 dq=None if v is None else v.dq.astype(float),
+                tau=None if v is None else v.tau_est.astype(float),
                 quat=None if v is None else v.quaternion.astype(float),
                 gyro=None if v is None else v.gyroscope.astype(float),
                 combos=tuple(combos), fault=fault, imu_errors=imu_errors,

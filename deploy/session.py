@@ -159,13 +159,16 @@ class SessionConfig:
 
 @dataclass
 class TickInput:
-    """One tick's inputs. q, dq (12,) SDK order; quat (w, x, y, z) body -> world; gyro (3,)
+    """One tick's inputs. q, dq (12,) SDK order; tau (12,) SDK order, N m: the torque the
+    motors report (LowState's ``tau_est``; the lifted leg's tracking adapter identifies the
+    command's delay from it; None: not reported); quat (w, x, y, z) body -> world; gyro (3,)
     rad/s body frame; combos: names of the joystick combos fired this tick ("damp", "stand",
     "calibrate_FL", ...); fault: supervisor fault cause; imu_errors: leg -> error text;
     window_mark: opaque marker of the newest LowState (what SOLVE's window is made of)."""
 
     q: np.ndarray | None
     dq: np.ndarray | None = None
+    tau: np.ndarray | None = None
     quat: np.ndarray | None = None
     gyro: np.ndarray | None = None
     combos: Sequence[str] = ()
@@ -524,7 +527,12 @@ class Session:
             self._q_start = q[idx].copy()  # latched at the first tick of lift
         q_start = self._q_start if self._q_start is not None else q[idx]
         gravity = projected_gravity(inp.quat) if inp.quat is not None else None
-        targets = sched.targets_at(lift_leg, ts, q_start, gravity)
+        ts_cmd = ts
+        if self._adapter is not None:
+            # the plan ahead by the command delay the adapter found: the motors play it on time
+            t0 = float(sched.durations(lift_leg)[:3].sum())
+            ts_cmd = ts + np.array([self._adapter.lead(t - t0)[0] for t in ts])
+        targets = sched.targets_at(lift_leg, ts_cmd, q_start, gravity)
         if self._adapter is not None:
             targets = self._adapt(lift_leg, ts, targets, inp)
         return targets
@@ -538,9 +546,11 @@ class Session:
         now = targets[0]
         if now.phase == "excite" and inp.dq is not None:
             model = now.tau if now.tau is not None else self._zeros[:3]
+            tau = None if inp.tau is None else np.asarray(inp.tau, dtype=float)[idx]
             self._adapter.observe(ts[0] - t0, now.q_des, now.dq_des, now.ddq_des,
                                   np.asarray(inp.q, dtype=float)[idx],
-                                  np.asarray(inp.dq, dtype=float)[idx], model, self._adapted)
+                                  np.asarray(inp.dq, dtype=float)[idx], model, self._adapted,
+                                  tau_motor=tau)
         out = []
         for t, lt in zip(ts, targets):
             if lt.phase in ("excite", "lower"):

@@ -573,8 +573,14 @@ class TripodEnv:
             self.lift_q_start[latch] = self.qpos[latch[:, None], jl]
             self.lift_latched[latch] = True
         need_ddq = self.cfg.lift_feedforward or self.adapter is not None
-        qd, dqd, ph, *ddq_te = self._plan(act, t[act], accelerations=need_ddq)
-        ddq, te = ddq_te or (None, None)
+        t_cmd = t[act]
+        if self.adapter is not None:
+            # the plan commanded ahead by the delay the adapter found, so that it is played on
+            # time (the adapter's clock stays the excitation's own)
+            te = t_cmd - d[:, :3].sum(1)
+            t_cmd = t_cmd + self.adapter.lead(te, rows=act)
+        qd, dqd, ph, *ddq_te = self._plan(act, t_cmd, accelerations=need_ddq)
+        ddq = ddq_te[0] if ddq_te else None
         jidx = 3 * self.lift_leg[act][:, None] + np.arange(3)
         tau = None
         if self.cfg.lift_feedforward:
@@ -600,7 +606,7 @@ class TripodEnv:
                 a, j = act[m][:, None], jidx[m]
                 self.adapter.observe(te[m], qd[m], dqd[m], ddq[m], self.qpos[a, 7 + j],
                                      self.qvel[a, 6 + j], model[m], self.lift_applied[act[m]],
-                                     rows=act[m])
+                                     rows=act[m], tau_motor=self.act_force[a, j])
         on = (ph == PHASES.index("excite")) | (ph == PHASES.index("lower"))
         c = np.zeros((len(act), 3))
         if on.any():

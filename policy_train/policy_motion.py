@@ -298,6 +298,16 @@ def run_policy_a2i(
     t_exc0 = float(dur[:3].sum())
     applied = np.zeros(3)  # the adapter's torque in the frame the motors hold
     guard = TipGuard(max_tip)
+
+    def ahead(j: int) -> int:
+        """The schedule's row commanded at its row ``j``: as far ahead as the adapter's lead
+        (the command delay it found), so that the motors play the plan on time."""
+        if adapter is None or sched_q is None:
+            return j
+        lead = adapter.lead((k_latch + j - k0) * timestep - t_exc0)[0]
+        # not past the lowering's last row: the table's rows after it (done) have no targets
+        last = int(np.searchsorted(sched_phase, _DONE)) - 1
+        return max(min(j + round(lead / timestep), last), j)
     gate = LiftGate(lift_gate)
     support = go2_support() if gate.limits is not None else None
     stance = [g for g in LEGS if g != leg]
@@ -363,12 +373,13 @@ def run_policy_a2i(
             k_stop = k + n_low + round(_WATCH_AFTER_ABORT_S / timestep)
         if k % n_ctrl == 0:
             if adapter is not None and phase == _EXCITE:
-                # a tick's measurement against the plan at this instant, as on board
-                i = k - k_latch
+                # a tick's measurement against the plan commanded at this instant, as on board
+                i = ahead(k - k_latch)
                 g = sensed_gravity(sim.base_quat_wxyz)
                 model = sched_tau.at(i, g) if sched_tau is not None else zeros3
                 adapter.observe(t_lift - t_exc0, sched_q[i], sched_dq[i], sched_ddq[i],
-                                sim.q[idx_m], sim.dq[idx_m], model, applied)
+                                sim.q[idx_m], sim.dq[idx_m], model, applied,
+                                tau_motor=sim.tau[idx_m])
             handback = phase == _DONE and lift_on
             lift_on = 0 <= phase < _DONE
             signals = policy_signals(sim, runner, lift_value if lift_on else none_value)
@@ -393,7 +404,8 @@ def run_policy_a2i(
         if sched_phase is not None and 1 <= phase <= 4:
             # the schedule at the time of this step's frame, held until the next frame (a latch
             # mid-frame starts the lift's first frame at the latch)
-            j = max(k - k % n_frame - k_latch, 0)
+            j_frame = max(k - k % n_frame - k_latch, 0)
+            j = ahead(j_frame)
             q_cmd = q_cmd.copy()
             dq_cmd = dq_cmd.copy()
             q_cmd[idx_m] = sched_q[j]
@@ -404,7 +416,7 @@ def run_policy_a2i(
             if sched_tau is not None:
                 model = sched_tau.at(j, sensed_gravity(sim.base_quat_wxyz))
             if adapter is not None and phase >= _EXCITE:
-                applied = adapter.torque((k_latch + j - k0) * timestep - t_exc0,
+                applied = adapter.torque((k_latch + j_frame - k0) * timestep - t_exc0,
                                          sched_dq[j], sched_ddq[j], model)[0]
             if sched_tau is not None or adapter is not None:
                 tau_c = np.zeros(12)

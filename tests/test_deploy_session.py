@@ -549,6 +549,35 @@ def test_adapt_schedule_adds_what_the_legs_lag_shows_from_its_fit_on(tmp_path):
     assert rig.s._adapter is not first and not rig.s._adapter.fitted[0]
 
 
+def test_adapt_finds_the_command_delay_from_the_reported_torque_and_leads_the_plan(tmp_path):
+    """The rig's motors play each command a tick (20 ms) late and report the torque of the PD
+    law they ran (LowState's ``tau_est``): the adapter finds the delay from it, and once faded
+    in the lifted leg's frames are the plan 20 ms ahead, so the late leg plays it on time."""
+    from deploy.hold_policy import write_hold_policy
+
+    sched = LiftSchedule(shift=0.2, lift=0.2, hold=0.2, lower=0.2, periods=1, adapt=True)
+    rig = Rig(write_hold_policy(tmp_path, "ad", schedule=sched), legs=("RL",))
+    idx = sdk_indices("RL")
+    rig.run_until(State.CALIBRATE)
+    t0 = sched.durations("RL")[:3].sum()
+    last = None  # the frame the motors hold now: the one sent a tick ago
+    checked = 0
+    while rig.s.state is State.CALIBRATE:
+        t = (rig.s.k - rig.s._k_lift) * 0.02 - t0  # s into the excitation at this tick
+        # the PD law on the held frame with the joints as they are (q is that frame's, dq 0)
+        tau = None if last is None else last.kp * (last.q - rig.q) + last.kd * last.dq + last.tau
+        cmd = rig.tick(tau=tau)
+        last = cmd
+        ad = rig.s._adapter
+        if t > 3.0 and rig.s.state is State.CALIBRATE:
+            lead = ad.lead(t)[0]
+            want = sched.targets("RL", t + t0 + lead, rig.s._q_start)
+            np.testing.assert_allclose(cmd.q[idx], want.q_des, atol=1e-9)
+            checked += 1
+    assert ad.delay[0] == pytest.approx(0.02)
+    assert checked > 20
+
+
 def test_feedforward_schedule_sends_the_lifted_leg_torque(tmp_path):
     from deploy.hold_policy import write_hold_policy
 

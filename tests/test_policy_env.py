@@ -251,12 +251,16 @@ def test_feedforward_torque_cuts_the_lifted_legs_lag():
 def test_tracking_adapter_cuts_the_lag_of_joint_friction_the_model_lacks():
     """``lift_adapt`` (the evaluation plays the JSON's ``adapt``): on joints with 0.5 N m of
     dry friction, once fitted (2 s into the excitation, faded in by 2.5 s) the lifted leg tracks
-    its plan closer; the adapter's torque is off outside the excitation's envs."""
+    its plan closer; the adapter's torque is off outside the excitation's envs. No latency: a
+    delay the adapter finds is not fed forward (the next test), and would stay in the error."""
+    from policy_train.config import DRConfig
+
     def tracking_rms(adapt):
         # 8 robots: each starts in a hold of its own length, and only some of them are 2.6 s
         # into their excitation within these 6 s (4 gave 46 samples once inertias were drawn)
         e = TripodEnv(EnvConfig(num_envs=8, plans_per_leg=1, seed=5, threads=1,
-                                p_reference_start=1.0, p_reference_shift=0.0, lift_adapt=adapt))
+                                p_reference_start=1.0, p_reference_shift=0.0, lift_adapt=adapt,
+                                dr=DRConfig(latency_steps=(0, 0))))
         e._joint_fric[:, 6:] = 0.5
         err = []
         for _ in range(300):
@@ -271,6 +275,30 @@ def test_tracking_adapter_cuts_the_lag_of_joint_friction_the_model_lacks():
 
     plain, adapted = tracking_rms(False), tracking_rms(True)
     assert adapted < 0.6 * plain, (adapted, plain)
+
+
+def test_tracking_adapter_finds_the_actuation_latency_from_the_motor_torque():
+    """30 ms of actuation latency (6 physics steps): from the actuators' force the adapter finds
+    it within a physics step, and learns no damping from the lag it makes. (The robots stand
+    on zero actions, and tip within a few seconds of excitation under such a delay: the fit
+    starts 0.5 s in.)"""
+    from deploy.tracking_adapter import AdapterConfig, TrackingAdapter
+    from policy_train.config import DRConfig
+    cfg = EnvConfig(num_envs=8, plans_per_leg=1, seed=5, threads=1, p_reference_start=1.0,
+                    p_reference_shift=0.0, lift_adapt=True, dr=DRConfig(latency_steps=(6, 6)))
+    e = TripodEnv(cfg)
+    e.adapter = TrackingAdapter(cfg.lift_kp, cfg.lift_kd, 8, AdapterConfig(start_s=0.5))
+    fitted = np.zeros(8, dtype=bool)
+    for _ in range(100):
+        e.step(np.zeros((8, 12)))
+        fitted |= e.adapter.fitted
+        if fitted.sum() >= 3:
+            break
+    fitted = e.adapter.fitted
+    assert fitted.sum() >= 3
+    assert np.all(np.abs(e.adapter.delay[fitted] - 0.030) <= 0.005), e.adapter.delay[fitted]
+    # a lag read as damping would be kp d = 2.4 N m s/rad
+    assert np.abs(e.adapter.coef[fitted][..., 0]).max() < 0.5
 
 
 def test_reference_start_is_a_level_tripod_in_hold():
