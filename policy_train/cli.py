@@ -46,7 +46,7 @@ import sys
 import time
 from pathlib import Path
 
-from policy_train.config import DR_GROUPS, RANDOMISATIONS, DRConfig
+from policy_train.config import DR_GROUPS, RANDOMISATIONS, DRConfig, EnvConfig
 from policy_train.distill import LABELS
 
 __all__ = ["main"]
@@ -555,6 +555,13 @@ def _dr_setting(text: str) -> tuple[str, object]:
             + (" LO,HI with LO <= HI" if n == 2 else "") + f", e.g. {default}")
     if field == "floor_tilt_deg" and parts[1] >= 30.0:  # a Go2 tripod slides well before
         raise argparse.ArgumentTypeError(f"{text!r}: floor_tilt_deg must stay under 30 deg")
+    if field == "floor_timeconst" and parts[1] > 0 and not (
+            2 * EnvConfig().physics_dt <= parts[0] and parts[1] <= 0.08):
+        # under two physics steps MuJoCo stiffens the floor; at 0.08 s the standing feet sink
+        # past their centres and every calf is on it
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: floor_timeconst takes 0,0 (off) or LO,HI within "
+            f"[{2 * EnvConfig().physics_dt}, 0.08] s")
     return field, parts if isinstance(default, tuple) else parts[0]
 
 

@@ -99,6 +99,11 @@ class DRConfig:
     # away from the floor's normal by as much (the same physics on an infinite plane). Drawn
     # only when on: configurations without it keep their draws (the transfer check's `slope`)
     floor_tilt_deg: tuple[float, float] = (0.0, 0.0)
+    # s: a floor that gives, its contacts' solref time constant drawn per episode (MuJoCo's
+    # default, 0.02, is the hard floor: standing feet sink 2 mm; 0.03-0.045 sink 4-11 mm, the
+    # transfer check's `soft_floor`). At least two physics steps, or MuJoCo stiffens it
+    # silently. Drawn only when on, like the tilt
+    floor_timeconst: tuple[float, float] = (0.0, 0.0)
 
     def with_settings(self, settings: dict) -> DRConfig:
         """A copy with the named fields set (``a2i-train tripod / distill / eval --dr``; lists,

@@ -271,6 +271,10 @@ class TripodEnv:
         self._joint_fric = b.expand("dof_frictionloss")
         self._g = float(np.linalg.norm(m.opt.gravity))
         self._gravity = None  # opt.gravity per env, expanded at the first tilted floor drawn
+        # the floor's solref per env, expanded at the first floor that gives drawn: until then
+        # every env has the model's own contact, and configurations without it keep their physics
+        self._floor_geom = m.geom("floor").id
+        self._floor_solref = None
         # the contact sensors' columns in sensordata, read after every physics step
         tm = self.tm
         self._foot_cols, self._base_cols = _columns(tm.foot_contact), _columns(tm.base_contact)
@@ -434,6 +438,16 @@ class TripodEnv:
                 if self._gravity is None:
                     self._gravity = self.batch.expand("opt.gravity")
                 self._gravity[ids] = self._g * self.down[ids]
+            if dr.floor_timeconst[1] > 0:  # likewise
+                if dr.floor_timeconst[0] < 2 * self.cfg.physics_dt:
+                    raise ValueError(f"floor_timeconst {dr.floor_timeconst[0]} s is under two "
+                                     f"physics steps ({2 * self.cfg.physics_dt} s): MuJoCo would "
+                                     "stiffen the floor silently")
+                if self._floor_solref is None:
+                    self._floor_solref = self.batch.expand("geom_solref")
+                    # the floor's solmix governs its contacts (sim.effects.FloorSoftness)
+                    self.batch.expand("geom_solmix")[:, self._floor_geom] = 1e6
+                self._floor_solref[ids, self._floor_geom, 0] = rng.uniform(*dr.floor_timeconst, n)
         else:
             self.kp_s[ids] = self.kd_s[ids] = self.strength[ids] = 1.0
             self.latency[ids] = 0

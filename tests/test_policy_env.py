@@ -8,7 +8,7 @@ from calib.excitation import ExcitationConfig
 from calib.joints import MODEL_LEGS, model_to_sdk
 from deploy.lift_schedule import LiftSchedule, blend_accelerations
 from policy_train import rewards as R
-from policy_train.config import EnvConfig, RewardConfig, TrainConfig
+from policy_train.config import DR_GROUPS, EnvConfig, RewardConfig, TrainConfig
 from policy_train.env import TripodEnv
 from policy_train.model import ARMATURE
 
@@ -396,6 +396,45 @@ def test_joint_friction_is_drawn_per_joint_only_when_on(env):
     on.reset_idx(np.array([0]))
     assert not np.array_equal(on.batch.expanded("dof_frictionloss")[0], fl[0])
     np.testing.assert_array_equal(on.batch.expanded("dof_frictionloss")[1:], fl[1:])
+
+
+def test_floor_that_gives_sinks_the_feet_and_is_drawn_only_when_on(env):
+    """DRConfig.floor_timeconst: the floor's solref time constant drawn per env within its
+    range, its solmix governing its contacts, the other geoms untouched; the feet sink deeper
+    than on the model's own floor; off by default with the model's contact shared; a time
+    constant under two physics steps refused."""
+    assert env.batch.expanded("geom_solref") is None
+    assert env.batch.expanded("geom_solmix") is None
+
+    def standing(timeconst):
+        cfg = EnvConfig(num_envs=3, plans_per_leg=1, seed=7, threads=1)
+        cfg.dr = cfg.dr.without(*DR_GROUPS).with_settings(
+            {"init_joint_noise": 0.0, "floor_timeconst": timeconst})
+        e = TripodEnv(cfg)
+        for _ in range(25):  # 0.5 s: on four feet, before the shift and the lift
+            e.step(np.zeros((3, 12)))
+        return e, e.sensordata[:, e.tm.foot_pos + 2]
+
+    hard, z_hard = standing((0.0, 0.0))
+    assert hard.batch.expanded("geom_solref") is None
+    soft, z_soft = standing((0.045, 0.045))
+    floor = soft._floor_geom
+    solref, solmix = soft.batch.expanded("geom_solref"), soft.batch.expanded("geom_solmix")
+    np.testing.assert_array_equal(solref[:, floor], [[0.045, 1.0]] * 3)
+    np.testing.assert_array_equal(solmix[:, floor], 1e6)
+    others = np.arange(soft.tm.model.ngeom) != floor
+    np.testing.assert_array_equal(solref[:, others], np.broadcast_to(
+        soft.tm.model.geom_solref[others], solref[:, others].shape))
+    # the three lowest foot centres of each env (a lift may have begun), m: the sphere's
+    # radius, 22 mm, over the floor when it just touches
+    low_hard, low_soft = np.sort(z_hard, 1)[:, :3], np.sort(z_soft, 1)[:, :3]
+    assert np.all(low_hard > 0.0175), z_hard
+    assert np.all(low_soft.mean(1) < 0.017), z_soft
+    drawn, _ = standing((0.03, 0.045))
+    tc = drawn.batch.expanded("geom_solref")[:, floor, 0]
+    assert np.all((tc >= 0.03) & (tc <= 0.045)) and np.ptp(tc) > 0
+    with pytest.raises(ValueError, match="two physics steps"):
+        standing((0.005, 0.03))
 
 
 def test_floor_tilt_turns_gravity_and_is_drawn_only_when_on(env):

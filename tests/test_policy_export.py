@@ -204,6 +204,11 @@ def test_dr_settings_apply_over_the_randomisation_and_write_nothing(exported, tm
     for bad in ("floor_tilt_deg=0,45", "floor_tilt_deg=5,2", "floor_tilt_deg=3"):
         with pytest.raises(argparse.ArgumentTypeError, match="floor_tilt_deg"):
             _dr_setting(bad)
+    assert _dr_setting("floor_timeconst=0.03,0.045") == ("floor_timeconst", (0.03, 0.045))
+    assert _dr_setting("floor_timeconst=0,0") == ("floor_timeconst", (0.0, 0.0))
+    for bad in ("floor_timeconst=0.005,0.03", "floor_timeconst=0.03,0.2", "floor_timeconst=0,0.03"):
+        with pytest.raises(argparse.ArgumentTypeError, match="floor_timeconst"):
+            _dr_setting(bad)
     meta = json.loads((d / "pol.json").read_text())
     env, _ = evaluation_env(meta, ("FL",), 8, seed=1, dr_set={"motor_strength": (0.7, 0.8)})
     assert np.all((env.strength >= 0.7) & (env.strength <= 0.8))
