@@ -411,7 +411,7 @@ def test_floor_that_gives_sinks_the_feet_and_is_drawn_only_when_on(env):
         cfg.dr = cfg.dr.without(*DR_GROUPS).with_settings(
             {"init_joint_noise": 0.0, "floor_timeconst": timeconst})
         e = TripodEnv(cfg)
-        for _ in range(25):  # 0.5 s: on four feet, before the shift and the lift
+        for _ in range(25):  # 0.5 s: settled; some envs may have begun a lift
             e.step(np.zeros((3, 12)))
         return e, e.sensordata[:, e.tm.foot_pos + 2]
 
