@@ -555,13 +555,15 @@ def _dr_setting(text: str) -> tuple[str, object]:
             + (" LO,HI with LO <= HI" if n == 2 else "") + f", e.g. {default}")
     if field == "floor_tilt_deg" and parts[1] >= 30.0:  # a Go2 tripod slides well before
         raise argparse.ArgumentTypeError(f"{text!r}: floor_tilt_deg must stay under 30 deg")
-    if field == "floor_timeconst" and parts[1] > 0 and not (
-            2 * EnvConfig().physics_dt <= parts[0] and parts[1] <= 0.08):
-        # under two physics steps MuJoCo stiffens the floor; at 0.08 s the standing feet sink
-        # past their centres and every calf is on it
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: floor_timeconst takes 0,0 (off) or LO,HI within "
-            f"[{2 * EnvConfig().physics_dt}, 0.08] s")
+    if field == "floor_timeconst" and parts[1] > 0:
+        from sim.effects import check_floor_timeconst
+
+        try:
+            check_floor_timeconst(parts[0], EnvConfig().physics_dt)
+        except ValueError as e:
+            raise argparse.ArgumentTypeError(f"{text!r}: {e}") from None
+        if parts[1] > 0.08:  # the standing feet sink past their centres, every calf on it
+            raise argparse.ArgumentTypeError(f"{text!r}: floor_timeconst must stay at most 0.08 s")
     return field, parts if isinstance(default, tuple) else parts[0]
 
 

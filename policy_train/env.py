@@ -49,6 +49,7 @@ from deploy.tracking_adapter import TrackingAdapter
 from policy_train.config import OBS_NOISE, EnvConfig
 from policy_train.model import TrainModel
 from policy_train.rewards import compute_rewards
+from sim.effects import FLOOR_SOLMIX, check_floor_timeconst
 from sim.tripod_pose import tripod_pose
 
 __all__ = ["LIFT_VALUES", "OBS_NOISE", "PRIV_TERMS", "PlanPool", "TripodEnv", "noise_amplitude"]
@@ -439,14 +440,10 @@ class TripodEnv:
                     self._gravity = self.batch.expand("opt.gravity")
                 self._gravity[ids] = self._g * self.down[ids]
             if dr.floor_timeconst[1] > 0:  # likewise
-                if dr.floor_timeconst[0] < 2 * self.cfg.physics_dt:
-                    raise ValueError(f"floor_timeconst {dr.floor_timeconst[0]} s is under two "
-                                     f"physics steps ({2 * self.cfg.physics_dt} s): MuJoCo would "
-                                     "stiffen the floor silently")
-                if self._floor_solref is None:
+                check_floor_timeconst(dr.floor_timeconst[0], self.cfg.physics_dt)
+                if self._floor_solref is None:  # as sim.effects.FloorSoftness sets the model's
                     self._floor_solref = self.batch.expand("geom_solref")
-                    # the floor's solmix governs its contacts (sim.effects.FloorSoftness)
-                    self.batch.expand("geom_solmix")[:, self._floor_geom] = 1e6
+                    self.batch.expand("geom_solmix")[:, self._floor_geom] = FLOOR_SOLMIX
                 self._floor_solref[ids, self._floor_geom, 0] = rng.uniform(*dr.floor_timeconst, n)
         else:
             self.kp_s[ids] = self.kd_s[ids] = self.strength[ids] = 1.0

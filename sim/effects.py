@@ -411,6 +411,18 @@ class FloorSlope(Effect):
 MUJOCO_TIMECONST_S = 0.02
 """MuJoCo's default contact ``solref`` time constant, s: the floor of the nominal model."""
 
+FLOOR_SOLMIX = 1e6
+"""The ``solmix`` a floor that gives is set to: the other geom's weight is its own, 1, so the
+floor's contact parameters govern every contact it has."""
+
+
+def check_floor_timeconst(timeconst: float, timestep: float) -> None:
+    """ValueError where a floor's ``solref`` time constant (s) is under two physics steps of
+    ``timestep`` s: MuJoCo would stiffen it to that silently."""
+    if timeconst < 2 * timestep:
+        raise ValueError(f"a floor time constant of {timeconst} s is under two physics steps "
+                         f"({2 * timestep} s): MuJoCo would stiffen it silently")
+
 
 class FloorSoftness(Effect):
     """A floor that gives: its contacts' ``solref`` time constant ``timeconst`` s (MuJoCo's
@@ -432,15 +444,13 @@ class FloorSoftness(Effect):
         floors = [g for g in spec.geoms if g.name == "floor"]
         if not floors:
             raise ValueError("a floor softness needs the model's floor (SimConfig(floor=True))")
-        if spec.option.timestep * 2 > self.timeconst:  # MuJoCo would stiffen it silently
-            raise ValueError(f"a floor time constant of {self.timeconst} s needs a physics step "
-                             f"of at most {self.timeconst / 2} s, got {spec.option.timestep}")
+        check_floor_timeconst(self.timeconst, spec.option.timestep)
         over = [g.name or "(unnamed)" for g in spec.geoms if g.priority > floors[0].priority]
         if over:  # MuJoCo takes the contact settings of the geom with the higher priority
             raise ValueError(f"a floor softness would not act: {', '.join(over)} have priority "
                              "over the floor, their own contact settings govern")
         floors[0].solref = [self.timeconst, self.dampratio]
-        floors[0].solmix = 1e6  # the other geom's weight is its solmix, 1: the floor's governs
+        floors[0].solmix = FLOOR_SOLMIX
 
     def __repr__(self) -> str:
         return f"FloorSoftness({self.timeconst!r}, dampratio={self.dampratio!r})"
