@@ -28,7 +28,7 @@ import numpy as np
 
 from calib.atomic import write_text_atomic
 from calib.excitation import base_to_foot, covariance_kappa, foot_omega
-from calib.joints import MODEL_LEGS, model_to_sdk, sdk_to_model
+from calib.joints import MODEL_LEGS, default_crouch, model_to_sdk, sdk_to_model
 from deploy.lift_schedule import PHASES, LiftSchedule
 from policy_train.config import RANDOMISATIONS, DRConfig, TrainConfig
 from policy_train.env import PlanPool, TripodEnv
@@ -60,6 +60,12 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
     if randomisation not in RANDOMISATIONS:
         raise ValueError(f"unknown randomisation {randomisation!r}; known: "
                          f"{', '.join(RANDOMISATIONS)}")
+    # deploy stands the robot at the JSON's default_pose and the environment at the training's:
+    # a JSON moved off it would be scored standing where it never stands on board
+    if not np.allclose(meta["default_pose"], default_crouch("sdk"), rtol=0.0, atol=1e-6):
+        raise ValueError(f"{meta.get('name', 'this policy')}'s default_pose is not the training "
+                         f"environment's stand, {np.round(default_crouch('sdk'), 4).tolist()} "
+                         "(SDK order): the evaluation cannot stand it where deploy would")
     cfg = TrainConfig.from_dict(meta["train_config"]).env
     cfg.model_file = None
     cfg.plan_pool_file = None

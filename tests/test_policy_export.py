@@ -132,6 +132,23 @@ def test_eval_runs_on_export(exported, tmp_path):
     assert json.loads((d / "pol.json").read_text())["evaluation"]["legs"]["FL"]["episodes"] == 1
 
 
+def test_eval_refuses_a_json_that_stands_elsewhere_than_training(exported, tmp_path, capsys):
+    """Deploy stands the robot at the JSON's default_pose, the evaluation at the training's: a
+    JSON moved off it is refused with one line, before any episode is played."""
+    import shutil
+
+    from policy_train.cli import main
+
+    d, _ = exported
+    meta = json.loads((d / "pol.json").read_text())
+    meta["default_pose"][1] += 0.1  # FR's thigh, SDK order
+    (tmp_path / "moved.json").write_text(json.dumps(meta))
+    shutil.copy(d / "pol.onnx", tmp_path / "moved.onnx")
+    assert main(["eval", str(tmp_path / "moved.onnx"), "--episodes", "1", "--no-write"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "default_pose" in err[0] and "deploy" in err[0]
+
+
 def test_eval_page_of_a_candidate_leaves_the_deploy_policys_page_alone(exported, tmp_path,
                                                                       monkeypatch):
     """policy.md is the page of the policy deploy picks (the newest in policies/); any other
