@@ -56,7 +56,9 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
     with the lift command at t = 0 and the JSON's schedule and plans, running to its end (no
     terminations, no reference starts), under the ``randomisation`` (of
     :data:`config.RANDOMISATIONS`), ``dr_off``'s groups held nominal and ``dr_set``'s fields
-    (``DRConfig`` names) set over it. Returns the env and each episode's model leg index."""
+    (``DRConfig`` names) set over it. Returns the env and each episode's model leg index.
+    ValueError for a JSON whose ``default_pose`` is not the training's stand (the environment
+    stands every episode there, deploy at the JSON's)."""
     if randomisation not in RANDOMISATIONS:
         raise ValueError(f"unknown randomisation {randomisation!r}; known: "
                          f"{', '.join(RANDOMISATIONS)}")
