@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from calib.joints import LEGS, SDK_JOINT_NAMES, check_leg
+from deploy.action import next_target
 from deploy.lift_schedule import LiftSchedule
 from deploy.observation import TERM_SIZES, ObservationHistory, check_terms, history_length
 
@@ -39,7 +40,8 @@ class PolicyMeta:
     """What the policy JSON (schema_version 1) tells deploy. Units SI, joint order SDK.
 
     control_dt s; default_pose rad; kp N m/rad, kd N m s/rad; action_scale rad per unit action;
-    action_clip (unitless, on the raw action); soft_lower/soft_upper rad; observation: the
+    action_clip (unitless, on the raw action); soft_lower/soft_upper rad; target_lead_max rad
+    (or None): how far a target may lead its joint (``deploy.action``); observation: the
     metadata's ``observation`` object (size, clip, terms); lift_command: leg -> term value
     (``"none"`` included); schedule: the :class:`LiftSchedule` of ``lift_schedule``.
     """
@@ -60,6 +62,7 @@ class PolicyMeta:
     lift_command: dict[str, float]
     schedule: LiftSchedule
     legs: tuple[str, ...] = LEGS
+    target_lead_max: np.ndarray | None = None
     raw: dict = field(repr=False, default_factory=dict)
 
     @classmethod
@@ -114,6 +117,11 @@ class PolicyMeta:
         scale, clip = float(act.get("scale", "nan")), float(act.get("clip", "nan"))
         if not (np.isfinite(scale) and scale > 0 and np.isfinite(clip) and clip > 0):
             raise ValueError("action.scale and action.clip must be positive numbers")
+        lead_max = None
+        if act.get("target_lead_max") is not None:
+            lead_max = _vec12(act, "target_lead_max", "action.")
+            if np.any(lead_max <= 0):
+                raise ValueError("action.target_lead_max must be positive on every joint")
         lim = d.get("soft_limits") or {}
         lower = _vec12(lim, "lower", "soft_limits.")
         upper = _vec12(lim, "upper", "soft_limits.")
@@ -153,7 +161,7 @@ class PolicyMeta:
             action_scale=scale, action_clip=clip, action_mode=mode,
             soft_lower=lower, soft_upper=upper, observation=dict(obs), lift_command=lift,
             schedule=LiftSchedule.from_metadata(d.get("lift_schedule") or {}),
-            legs=tuple(g for g in LEGS if g in legs), raw=dict(d),
+            legs=tuple(g for g in LEGS if g in legs), target_lead_max=lead_max, raw=dict(d),
         )
 
     def lift_value(self, leg: str | None) -> float:
@@ -283,10 +291,14 @@ class PolicyRunner:
         self.prev_actions = np.zeros(12, np.float32)
         self.frames.reset()
 
-    def step(self, actions: np.ndarray) -> np.ndarray:
-        """Apply raw ``actions`` to the target (delta_target rule); returns the new target."""
+    def step(self, actions: np.ndarray, q: np.ndarray | None = None) -> np.ndarray:
+        """Apply raw ``actions`` to the target (the delta_target rule, :mod:`deploy.action`);
+        returns the new target. q: the measured joints, rad (SDK order), which a policy with a
+        ``target_lead_max`` needs."""
         m = self.meta
         a = np.clip(actions.astype(float), -m.action_clip, m.action_clip)
-        self.target = np.clip(self.target + m.action_scale * a, m.soft_lower, m.soft_upper)
+        self.target = next_target(self.target, m.action_scale * a, m.soft_lower, m.soft_upper,
+                                  None if q is None else np.asarray(q, dtype=float),
+                                  m.target_lead_max)
         self.prev_actions = actions.astype(np.float32)
         return self.target

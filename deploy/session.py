@@ -595,7 +595,7 @@ class Session:
             cmd = self._damp_command()
             cmd.obs, cmd.actions = obs, actions
             return cmd
-        target = self.policy.step(actions)
+        target = self.policy.step(actions, q)
         if phase == "done" and self.phase not in ("done", ""):
             # Hand-back (as in training, policy_train/env.py): the policy's target of the leg
             # restarts from where the leg is; what it accumulated meanwhile was never applied.

@@ -226,11 +226,12 @@ def _derive(a) -> int:
     from policy_train.export import derive_policy
 
     if (a.gains, a.lift_gains, a.t_r, a.periods, a.shift, a.adapt, a.stand,
-            a.excitation_seen) == (None,) * 8:
+            a.excitation_seen, a.target_lead) == (None,) * 9:
         raise SystemExit("a2i-train derive: give --gains, --lift-gains, --t-r, --periods, "
-                         "--shift, --[no-]adapt, --excitation-seen and/or --stand")
+                         "--shift, --[no-]adapt, --excitation-seen, --stand and/or --target-lead")
     onnx_path, json_path = derive_policy(a.onnx, a.out, a.gains, a.lift_gains, a.t_r, a.shift,
-                                         a.adapt, a.stand, a.periods, a.excitation_seen)
+                                         a.adapt, a.stand, a.periods, a.excitation_seen,
+                                         a.target_lead)
     print(f"wrote {onnx_path} and {json_path} (the network of {a.onnx})")
     return 0
 
@@ -647,8 +648,8 @@ def main(argv: list[str] | None = None) -> int:
                         "others, a2i-train export --lift-gains)")
     t.add_argument("--excitation-seen", type=_SEEN, default=None, metavar="F",
                    help="the fraction in [0, 1] of the lifted leg's excursion from its plan's "
-                        "centre pose that the policy observes while it excites (a new run's 1, "
-                        "the leg as measured; the critic always sees it so); the export's JSON "
+                        "start pose (plan.q0) that the policy observes while it excites (a new "
+                        "run's 1, the leg as measured; the critic always sees it so); the export's JSON "
                         "carries it, so deploy shows the leg as training did "
                         "(docs/policy-training.md, stop 67)")
     t.add_argument("--threads", type=_positive, default=None,
@@ -774,8 +775,8 @@ def main(argv: list[str] | None = None) -> int:
                    "friction, inertia, torque constant) is fed forward (default: the source's)")
     g.add_argument("--excitation-seen", type=_SEEN, default=None, metavar="F",
                    help="the fraction in [0, 1] of the lifted leg's excursion from its plan's "
-                   "centre pose (and of its joint velocities) that the policy observes while it "
-                   "excites: 1 as measured, 0 the leg still at that pose, as in the hold before "
+                   "start pose, plan.q0 (and of its joint velocities) that the policy observes "
+                   "while it excites: 1 as measured, 0 the leg still at that pose, as in the hold before "
                    "(docs/policy-training.md, stop 67; default: the source's)")
     g.add_argument("--stand", type=_stand, default=None, metavar="GAIN|hold",
                    help="while no leg is lifted, the graph stands the robot itself instead of "
@@ -785,6 +786,10 @@ def main(argv: list[str] | None = None) -> int:
                    "(the joints sag under the PD law) until the first lift, the network's own "
                    "stand after it. Refused unless it settles on the "
                    "simulator (damped gains)")
+    g.add_argument("--target-lead", choices=("torque", "off"), default=None,
+                   help="torque: hold each joint's target within effort / kp of the joint, "
+                   "where the motor already gives its whole torque (no wound-up demand); off: "
+                   "no bound (default: the source's, recomputed for new --gains)")
     r = sub.add_parser("refine", help="add a linear residual on the body's rate and tilt to an "
                        "exported policy's lifts of one leg, tuned by evolution strategies")
     r.add_argument("onnx", help="the exported policy (its .json beside it); a refined policy "

@@ -172,6 +172,10 @@ class EnvConfig:
     kd: float | tuple[float, ...] = 0.5
     action_scale: float = 0.1
     action_clip: float = 1.0
+    # rad, 12 in model order: how far a joint's target may lead the joint (deploy.action; the
+    # JSON's action.target_lead_max, effort / kp: no further does the motor give more torque);
+    # None: no bound, as every policy trained so far
+    target_lead_max: tuple[float, ...] | None = None
     obs_clip: float = 100.0
     # observation frames the policy sees, newest first (deploy.observation.ObservationHistory):
     # 1 is the paper's policy (v1-v7); the distilled v8 sees a few (docs/policy-training.md)
@@ -203,8 +207,8 @@ class EnvConfig:
     # evaluation plays the JSON's; training has not used it (the network never sees the lifted
     # leg's motors)
     lift_adapt: bool = False
-    # the fraction of the lifted leg's excursion from its plan's centre pose the policy observes
-    # while it excites (LiftSchedule's excitation_seen; deploy.observation.observe_lifted_leg;
+    # the fraction of the lifted leg's excursion from its plan's start pose (plan.q0) the policy
+    # observes while it excites (LiftSchedule's excitation_seen; deploy.observation.observe_lifted_leg;
     # the critic sees the leg as measured): the export writes it, the evaluation plays the
     # JSON's; every committed policy trained at 1
     excitation_seen: float = 1.0

@@ -3,8 +3,9 @@
 One policy step (50 Hz) = ``decimation`` physics steps (200 Hz) stepped in C on the batch's
 thread pool (all CPUs by default). Per policy step:
 
-1. actions (N, 12), **SDK order**, raw network outputs; ``target += scale * clip(a)``,
-   clamped to the soft limits (``docs/policy-format.md``, ``action.mode = delta_target``);
+1. actions (N, 12), **SDK order**, raw network outputs; ``target += scale * clip(a)``, held
+   within ``target_lead_max`` of the joints if set, clamped to the soft limits
+   (:mod:`deploy.action`, the on-board rule; ``docs/policy-format.md``, ``action``);
 2. for each physics substep, the motor controls: the policy targets (after the randomised
    actuation latency, whole physics steps) and, for the lifted leg while
    :mod:`deploy.lift_schedule` gives targets, the schedule's trajectory with its own gains;
@@ -35,6 +36,7 @@ from calib.joints import (
     model_to_sdk,
     sdk_to_model,
 )
+from deploy.action import next_target
 from deploy.lift_schedule import PHASES, LiftSchedule, blend_accelerations, blend_targets
 from deploy.observation import (
     OBS_SIZE,
@@ -249,6 +251,12 @@ class TripodEnv:
         self._effort = np.tile(np.asarray(EFFORT_LIMIT, dtype=float), len(MODEL_LEGS))
         self.default_pose = default_crouch("model")
         self.soft_lo, self.soft_hi = cfg.soft_limits(MODEL_LEGS)
+        self._lead_max = None if cfg.target_lead_max is None else np.asarray(
+            cfg.target_lead_max, dtype=float)
+        if self._lead_max is not None and (self._lead_max.shape != (12,)
+                                           or not np.all(self._lead_max > 0)):
+            raise ValueError("target_lead_max must be 12 positive numbers (model order), got "
+                             f"{cfg.target_lead_max}")
         self.obs_terms = default_terms(model_to_sdk(self.default_pose), "zero")
         if cfg.leg_dynamics_file:
             LiftSchedule.load_dynamics_pack(cfg.leg_dynamics_file)
@@ -632,7 +640,8 @@ class TripodEnv:
         self.prev_actions[:] = self.actions
         self.actions[:] = a
         a_m = sdk_to_model(np.clip(a, -cfg.action_clip, cfg.action_clip))
-        self.target[:] = np.clip(self.target + cfg.action_scale * a_m, self.soft_lo, self.soft_hi)
+        self.target[:] = next_target(self.target, cfg.action_scale * a_m, self.soft_lo,
+                                     self.soft_hi, self.qpos[:, 7:19], self._lead_max)
         kp = self._kp * (self.kp_s * self.strength)[:, None]
         kd = self._kd * (self.kd_s * self.strength)[:, None]
         self.foot_touch[:] = False

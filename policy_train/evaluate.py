@@ -84,6 +84,9 @@ def evaluation_env(meta: dict, legs, episodes: int, seed: int, nominal: bool = F
     cfg.episode_s = 1e6  # episodes end with the motion, not by time-out
     cfg.action_scale = float(meta["action"]["scale"])
     cfg.action_clip = float(meta["action"]["clip"])
+    lead = meta["action"].get("target_lead_max")  # SDK order in the JSON
+    cfg.target_lead_max = None if lead is None else tuple(
+        map(float, sdk_to_model(np.asarray(lead, dtype=float))))
     # the JSON's joint gains, as deploy sends them (the randomisation scales them from there)
     kp, kd = (sdk_to_model(np.asarray(meta[k], dtype=float)) for k in ("kp", "kd"))
     cfg.kp, cfg.kd = (float(g[0]) if not np.ptp(g) else tuple(map(float, g)) for g in (kp, kd))
@@ -360,6 +363,10 @@ def _derived(meta: dict) -> str:
     if float(d.get("excitation_seen", 1.0)) != seen:
         changed.append(f"the lifted leg observed at {seen:g} of its excursion while it excites"
                        if seen != 1.0 else "the lifted leg observed as measured while it excites")
+    lead = (meta.get("action") or {}).get("target_lead_max")
+    if lead != d.get("target_lead_max", lead):  # records before the bound: none then
+        changed.append("every joint's target held within effort / kp of its joint "
+                       "(`deploy.action`)" if lead is not None else "no target lead bound")
     stand = meta.get("stand") or {"mode": "network"}
     if stand != (d.get("stand") or {"mode": "network"}):
         if stand.get("mode") == "home":

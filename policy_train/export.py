@@ -20,7 +20,8 @@ import numpy as np
 import torch
 
 from calib.atomic import write_bytes_atomic, write_text_atomic
-from calib.joints import SDK_JOINT_NAMES, check_leg, model_to_sdk
+from calib.joints import EFFORT_LIMIT, SDK_JOINT_NAMES, check_leg, model_to_sdk
+from deploy.action import lead_max_for_torque
 from deploy.lift_schedule import LiftSchedule
 from deploy.observation import OBS_SIZE
 from policy_train.config import TrainConfig
@@ -138,7 +139,9 @@ def build_metadata(name: str, cfg: TrainConfig, seed: int, iterations: int,
         "kp": fl(model_to_sdk(np.broadcast_to(np.asarray(e.kp, dtype=float), (12,)))),
         "kd": fl(model_to_sdk(np.broadcast_to(np.asarray(e.kd, dtype=float), (12,)))),
         "action": {"size": 12, "scale": e.action_scale, "clip": e.action_clip,
-                   "mode": "delta_target"},
+                   "mode": "delta_target",
+                   **({} if e.target_lead_max is None else {"target_lead_max": fl(
+                       model_to_sdk(np.asarray(e.target_lead_max, dtype=float)))})},
         "soft_limits": {"lower": fl(lo), "upper": fl(hi)},
         "observation": {"size": OBS_SIZE * e.obs_history, "history": e.obs_history,
                         "clip": e.obs_clip, "terms": default_terms(default, "zero")},
@@ -249,7 +252,8 @@ def onnx_bytes(actor: torch.nn.Module, n_in: int) -> bytes:
 
 def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                   lift_gains=None, t_r=None, shift=None, adapt=None,
-                  stand=None, periods=None, excitation_seen=None) -> tuple[Path, Path]:
+                  stand=None, periods=None, excitation_seen=None,
+                  target_lead=None) -> tuple[Path, Path]:
     """Write ``<out_stem>.onnx`` (the source's network, byte for byte) and ``<out_stem>.json``
     (the source's, with other deploy gains or excitation speed) for a policy whose
     checkpoints are gone.
@@ -273,11 +277,14 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     ``home`` or ``hold``): what the graph plays while no leg is lifted, instead of the network's
     own four-leg stand (the only change to the ONNX: nodes after the network);
     excitation_seen: the fraction (in [0, 1]) of the lifted leg's excursion from its plan's
-    centre pose that the policy observes while it excites (the JSON's
-    ``lift_schedule.excitation_seen``, :func:`deploy.observation.observe_lifted_leg`).
+    start pose (plan.q0) that the policy observes while it excites (the JSON's
+    ``lift_schedule.excitation_seen``, :func:`deploy.observation.observe_lifted_leg`);
+    target_lead: ``"torque"``, each joint's target held within ``effort / kp`` of the joint
+    (the JSON's ``action.target_lead_max``, :mod:`deploy.action`: no further does the motor
+    give more torque), ``"off"`` no bound, None the source's (recomputed for new gains).
     The JSON's ``derived_from`` names the source, its commit, the gains, t_r, periods, shift (and
-    ``shift_by_leg``), adapt, excitation_seen and stand it had; its evaluation figures are
-    dropped (they were measured with the source's settings).
+    ``shift_by_leg``), adapt, excitation_seen, stand and target lead bound it had; its
+    evaluation figures are dropped (they were measured with the source's settings).
     ValueError on a source that is not an exported policy or on gains deploy refuses."""
     from deploy.policy import PolicyMeta
 
@@ -301,7 +308,8 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
                                else {}),
                             "adapt": sched.adapt,
                             "excitation_seen": sched.excitation_seen,
-                            "stand": meta.get("stand", {"mode": "network"})}
+                            "stand": meta.get("stand", {"mode": "network"}),
+                            "target_lead_max": meta["action"].get("target_lead_max")}
     if stand is not None:
         from policy_train.stand import apply_stand, stand_spec
 
@@ -353,6 +361,15 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
             ls["shift"] = float(shift)
             ls.pop("shift_by_leg", None)
         meta["lift_schedule"] = ls
+    if target_lead not in (None, "torque", "off"):
+        raise ValueError(f"target_lead must be 'torque' or 'off', got {target_lead!r}")
+    if target_lead is None and gains is not None and "target_lead_max" in meta["action"]:
+        target_lead = "torque"  # the source's bound, for the new gains
+    if target_lead == "torque":
+        meta["action"] = {**meta["action"], "target_lead_max": lead_max_for_torque(
+            meta["kp"], np.tile(EFFORT_LIMIT, 4)).tolist()}
+    elif target_lead == "off":
+        meta["action"] = {k: v for k, v in meta["action"].items() if k != "target_lead_max"}
     if adapt is not None:
         meta["lift_schedule"] = {**meta["lift_schedule"], "adapt": bool(adapt)}
     if excitation_seen is not None:

@@ -385,10 +385,11 @@ def run_policy_a2i(
             signals = policy_signals(sim, runner, lift_value if lift_on else none_value)
             if disturbance is not None:
                 signals = disturbance.noisy(signals, rng)
+            q_measured = signals["joint_pos"]  # the encoders', before what the policy is shown
             if sched.excitation_seen != 1.0 and phase == _EXCITE:
                 signals = observe_lifted_leg(signals, idx_s, plan.q0, sched.excitation_seen)
             obs = build_observation(pb.observation, signals)
-            runner.step(runner.act(obs))
+            runner.step(runner.act(obs), q_measured)
             if handback:
                 # the leg's policy target restarts from where the leg is, after this tick's
                 # action, as deploy and training do: the first command is the joints themselves

@@ -243,7 +243,7 @@ def settle(json_path, seconds: float = SETTLE_S) -> Settle:
     for k in range(n):
         if k % n_ctrl == 0:
             signals = policy_signals(sim, runner, pm.lift_value(None))
-            runner.step(runner.act(build_observation(pm.observation, signals)))
+            runner.step(runner.act(build_observation(pm.observation, signals)), sim.q_sdk)
             sim.set_command(sdk_to_model(runner.target), np.zeros(12), kp, kd, 0.0)
         sim.step()
         tilt = max(tilt, sim.base_tilt)

@@ -64,7 +64,7 @@ def test_hw_outside_mock_never_imports_sim():
 
 def test_policy_train_takes_only_the_shared_contract_from_deploy():
     assert _violations("policy_train", {"hw", "sim2real", "cli", "tests", "bench", "deploy"},
-                       allowed=("deploy.observation", "deploy.lift_schedule",
+                       allowed=("deploy.observation", "deploy.lift_schedule", "deploy.action",
                                 "deploy.tracking_adapter", "deploy.tip_guard", "deploy.lift_gate",
                                 "deploy.policy")) == []
 

@@ -59,6 +59,8 @@ def test_load_and_run(policy_json):
     (lambda d: d["observation"].update(terms=["joint_pos"]), "malformed"),
     (lambda d: d.update(action=[1, 2]), "malformed"),
     (lambda d: d.update(control_dt=None), "malformed"),
+    (lambda d: d["action"].update(target_lead_max=[0.5] * 11), "action.target_lead_max"),
+    (lambda d: d["action"].update(target_lead_max=[0.0] * 12), "action.target_lead_max"),
 ])
 def test_bad_metadata_is_refused_with_a_reason(tmp_path, mutate, msg):
     d = hold_policy_metadata()
@@ -67,6 +69,26 @@ def test_bad_metadata_is_refused_with_a_reason(tmp_path, mutate, msg):
     p.write_text(json.dumps(d))
     with pytest.raises(ValueError, match=msg):
         PolicyMeta.load(p)
+
+
+def test_a_target_lead_bound_holds_every_target_near_its_joint(tmp_path):
+    """``action.target_lead_max``: each tick's target stays within it of the measured joints
+    (then the soft limits), so a policy pushing a joint it cannot move winds up no demand."""
+    d = hold_policy_metadata()
+    d["action"]["target_lead_max"] = [0.2] * 12
+    p = tmp_path / "p.json"
+    p.write_text(json.dumps(d))
+    meta = PolicyMeta.load(p)
+    np.testing.assert_allclose(meta.target_lead_max, 0.2)
+    r = PolicyRunner.__new__(PolicyRunner)  # the rule alone: no ONNX needed
+    r.meta, r.target = meta, meta.default_pose.copy()
+    q = meta.default_pose.copy()  # the joints do not follow
+    for _ in range(10):
+        t = r.step(np.ones(12, np.float32), q)
+    np.testing.assert_allclose(t, np.minimum(q + 0.2, meta.soft_upper))
+    with pytest.raises(ValueError, match="measured joint positions"):
+        r.step(np.ones(12, np.float32))
+    assert PolicyMeta.from_dict(hold_policy_metadata(), p).target_lead_max is None
 
 
 def test_shift_by_leg_names_legs_in_any_case(tmp_path):

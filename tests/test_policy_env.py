@@ -43,6 +43,28 @@ def test_action_is_delta_target_in_sdk_order():
     np.testing.assert_array_equal(e.observations()["critic"][:, 33:45], e.actions)
 
 
+def test_target_lead_max_holds_each_target_within_it_of_its_joint():
+    """``target_lead_max`` (deploy.action, the JSON's action.target_lead_max): pushing every
+    joint the same way, no target gets further than the bound from where its joint stood when
+    the action came; without it the targets run to the soft limits, as before."""
+    lead = np.full(12, 0.15)
+    e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=2, threads=1,
+                            p_reference_start=0.0, target_lead_max=tuple(lead)))
+    free = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=2, threads=1,
+                               p_reference_start=0.0))
+    a = np.ones((2, 12))
+    for _ in range(8):
+        for x in (e, free):
+            x.lift_leg[:] = -1  # no override in these steps
+        q = e.qpos[:, 7:19].copy()
+        e.step(a)
+        free.step(a)
+        assert np.all(e.target - q <= lead + 1e-12)
+    assert (free.target - free.qpos[:, 7:19]).max() > 0.3  # wound up past it
+    with pytest.raises(ValueError, match="target_lead_max"):
+        TripodEnv(EnvConfig(num_envs=1, plans_per_leg=1, threads=1, target_lead_max=(0.1,) * 11))
+
+
 def test_calf_upper_margin_moves_only_the_calves_extension_clamp():
     from calib.joints import MODEL_LEGS, SDK_LEGS, position_limits
 

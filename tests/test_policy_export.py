@@ -615,6 +615,37 @@ def test_derive_turns_the_tracking_adapter_on_and_off(exported, tmp_path):
     assert evaluation_env(off, ("FL",), 1, seed=1, nominal=True)[0].adapter is None
 
 
+def test_derive_bounds_the_targets_lead_at_the_motors_torque(exported, tmp_path):
+    """`derive --target-lead torque` (stop 75): the JSON's action holds each joint's target
+    within effort / kp of its joint, the evaluation's env plays it (model order) and its page
+    says so; new --gains recompute it; `--target-lead off` drops it; the network byte for byte."""
+    from calib.joints import EFFORT_LIMIT, sdk_to_model
+    from policy_train.cli import main
+    from policy_train.evaluate import _derived, evaluation_env
+
+    d, _ = exported
+    assert main(["derive", str(d / "pol.onnx"), "--out", str(tmp_path / "g"),
+                 "--target-lead", "torque"]) == 0
+    meta = json.loads((tmp_path / "g.json").read_text())
+    want = np.tile(EFFORT_LIMIT, 4) / np.asarray(meta["kp"])
+    np.testing.assert_allclose(meta["action"]["target_lead_max"], want)
+    assert meta["derived_from"]["target_lead_max"] is None
+    assert "target held within effort / kp" in _derived(meta)
+    env, _ = evaluation_env(meta, ("FL",), 1, seed=1, nominal=True)
+    np.testing.assert_allclose(env.cfg.target_lead_max, sdk_to_model(want))
+    assert main(["derive", str(tmp_path / "g.onnx"), "--out", str(tmp_path / "h"),
+                 "--gains", "29,8/29,8/26,1.2"]) == 0
+    h = json.loads((tmp_path / "h.json").read_text())
+    np.testing.assert_allclose(h["action"]["target_lead_max"][:3],
+                               [23.7 / 29, 23.7 / 29, 45.43 / 26])
+    assert main(["derive", str(tmp_path / "h.onnx"), "--out", str(tmp_path / "k"),
+                 "--target-lead", "off"]) == 0
+    k = json.loads((tmp_path / "k.json").read_text())
+    assert "target_lead_max" not in k["action"]
+    assert evaluation_env(k, ("FL",), 1, seed=1, nominal=True)[0].cfg.target_lead_max is None
+    assert (tmp_path / "k.onnx").read_bytes() == (d / "pol.onnx").read_bytes()
+
+
 def test_training_at_an_excitation_seen_exports_it(tmp_path):
     """`tripod --excitation-seen 0.5`: the run trains with the lifted leg half shown (its
     configuration says so) and the export's lift schedule carries it, so deploy and the
