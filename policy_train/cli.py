@@ -53,8 +53,11 @@ __all__ = ["main"]
 
 
 def _tripod(a) -> int:
+    import numpy as np
     import torch
 
+    from calib.joints import EFFORT_LIMIT
+    from deploy.action import lead_max_for_torque
     from policy_train.config import DRConfig, EnvConfig, RewardConfig, TrainConfig
     from policy_train.runner import Trainer, check_device
 
@@ -113,6 +116,11 @@ def _tripod(a) -> int:
                                   for g in a.gains)
     if a.lift_gains is not None:
         cfg.env.lift_kp, cfg.env.lift_kd = a.lift_gains
+    if a.target_lead is not None:  # model order, as the run's gains
+        cfg.env.target_lead_max = None if a.target_lead == "off" else tuple(
+            float(x) for x in lead_max_for_torque(
+                np.broadcast_to(np.asarray(cfg.env.kp, dtype=float), (12,)),
+                np.tile(EFFORT_LIMIT, 4)))
     if a.calf_margin is not None:
         cfg.env.calf_upper_margin = a.calf_margin
     if a.calf_margin_ramp is not None:
@@ -139,7 +147,7 @@ def _tripod(a) -> int:
               f"exploration std {a.init_std}, a new critic trained alone for "
               f"{a.critic_warmup} iterations first", flush=True)
         given = {"--gains": a.gains, "--lift-gains": a.lift_gains,
-                 "--excitation-seen": a.excitation_seen}
+                 "--excitation-seen": a.excitation_seen, "--target-lead": a.target_lead}
         apart = {k: v for k, v in start["deploy_flags"].items() if given[k] is None}
         if apart:
             print(f"note: {Path(a.from_policy).name} deploys at other settings than it trained "
@@ -652,6 +660,10 @@ def main(argv: list[str] | None = None) -> int:
                         "run's 1, the leg as measured; the critic always sees it so); the export's JSON "
                         "carries it, so deploy shows the leg as training did "
                         "(docs/policy-training.md, stop 67)")
+    t.add_argument("--target-lead", choices=("torque", "off"), default=None,
+                   help="torque: hold each joint's target within effort / kp of the joint (the "
+                   "run's gains), as deploy plays a policy derived with --target-lead torque; "
+                   "off: no bound (a new run's; on --resume or --from-policy the run's own)")
     t.add_argument("--threads", type=_positive, default=None,
                    help="threads of the simulation and of the update (default: all CPUs); "
                         "1 each for two runs side by side on two cores")

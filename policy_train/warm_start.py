@@ -96,8 +96,8 @@ def deploy_flags(meta: dict) -> dict[str, str]:
     """``{flag: value}``: the ``a2i-train tripod`` flags under which a run trains as the exported
     policy ``meta`` (its JSON) deploys, where that differs from its training configuration.
 
-    A derived policy (``a2i-train derive``) deploys the same network at other gains, lift gains
-    or ``excitation_seen`` than it trained at, and ``--from-policy`` trains at the training
+    A derived policy (``a2i-train derive``) deploys the same network at other gains, lift gains,
+    ``excitation_seen`` or target lead bound than it trained at, and ``--from-policy`` trains at the training
     configuration's (as v21 was trained from v20 with ``--gains``): a fine-tune of such a policy
     that forgets the flags learns on joints its deploy never plays."""
     env = meta["train_config"]["env"]
@@ -111,6 +111,9 @@ def deploy_flags(meta: dict) -> dict[str, str]:
     seen = float(sched.get("excitation_seen", 1.0))
     if seen != float(env.get("excitation_seen", 1.0)):
         out["--excitation-seen"] = f"{seen:g}"
+    lead = (meta.get("action") or {}).get("target_lead_max")
+    if (lead is None) != (env.get("target_lead_max") is None):
+        out["--target-lead"] = "off" if lead is None else "torque"
     return out
 
 

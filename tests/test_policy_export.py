@@ -646,21 +646,27 @@ def test_derive_bounds_the_targets_lead_at_the_motors_torque(exported, tmp_path)
     assert (tmp_path / "k.onnx").read_bytes() == (d / "pol.onnx").read_bytes()
 
 
-def test_training_at_an_excitation_seen_exports_it(tmp_path):
-    """`tripod --excitation-seen 0.5`: the run trains with the lifted leg half shown (its
-    configuration says so) and the export's lift schedule carries it, so deploy and the
-    evaluation show the leg as training did."""
+def test_training_at_an_excitation_seen_and_a_target_lead_bound_exports_them(tmp_path):
+    """`tripod --excitation-seen 0.5 --target-lead torque`: the run trains with the lifted leg
+    half shown and each target within effort / kp of its joint (its configuration says so), and
+    the export's lift schedule and action carry them, so deploy and the evaluation play the
+    policy as training did."""
+    from calib.joints import EFFORT_LIMIT
     from policy_train.config import TrainConfig
 
     cmd = [sys.executable, "-m", "policy_train.cli", "tripod", "--iterations", "1",
            "--num-envs", "8", "--plans-per-leg", "1", "--steps-per-env", "4",
-           "--excitation-seen", "0.5", "--run-dir", str(tmp_path / "run"),
-           "--export", str(tmp_path / "pol")]
+           "--excitation-seen", "0.5", "--target-lead", "torque", "--run-dir",
+           str(tmp_path / "run"), "--export", str(tmp_path / "pol")]
     p = subprocess.run(cmd, capture_output=True, text=True, timeout=240, check=False)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
     meta = json.loads((tmp_path / "pol.json").read_text())
     assert meta["lift_schedule"]["excitation_seen"] == 0.5
-    assert TrainConfig.from_dict(meta["train_config"]).env.excitation_seen == 0.5
+    env = TrainConfig.from_dict(meta["train_config"]).env
+    assert env.excitation_seen == 0.5
+    np.testing.assert_allclose(meta["action"]["target_lead_max"],
+                               np.tile(EFFORT_LIMIT, 4) / np.asarray(meta["kp"]))
+    np.testing.assert_allclose(env.target_lead_max, np.tile(EFFORT_LIMIT, 4) / env.kp)
 
 
 def test_derive_sets_how_much_of_the_excitation_is_seen(exported, tmp_path, capsys):
@@ -1016,6 +1022,8 @@ def test_deploy_flags_name_what_a_derived_policy_deploys_apart_from_its_training
     assert deploy_flags(json.loads((pol / "tripod_go2_v7.json").read_text())) == {}
     seen = {**v43, "lift_schedule": {**v43["lift_schedule"], "excitation_seen": 0.5}}
     assert deploy_flags(seen)["--excitation-seen"] == "0.5"
+    bound = {**v43, "action": {**v43["action"], "target_lead_max": [0.8] * 12}}
+    assert deploy_flags(bound)["--target-lead"] == "torque"
     uneven = {**v43, "kp": [29.0] * 11 + [30.0]}
     assert deploy_flags(uneven)["--gains"].startswith("per joint")
     trained = {**v43, "train_config": {**v43["train_config"], "env": {
