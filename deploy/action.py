@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from calib.joints import EFFORT_LIMIT
+
 __all__ = ["lead_max_for_torque", "next_target"]
 
 
@@ -31,10 +33,14 @@ def next_target(target: np.ndarray, delta: np.ndarray, lower: np.ndarray, upper:
     return np.clip(new, lower, upper)
 
 
-def lead_max_for_torque(kp, effort) -> np.ndarray:
+def lead_max_for_torque(kp, effort=None) -> np.ndarray:
     """``effort / kp`` rad per joint: how far a target may lead its joint before the PD law
-    (kp N m/rad) asks for more than the motor's effort limit (N m). ValueError unless every
-    kp and effort is positive and finite."""
+    (kp N m/rad) asks for more than the motor's effort limit (N m). kp: one value or 12, in
+    either joint order (both go hip, thigh, calf per leg); effort: the Go2's limits,
+    :data:`calib.joints.EFFORT_LIMIT` per joint, unless given. ValueError unless every kp and
+    effort is positive and finite."""
+    if effort is None:
+        kp, effort = np.broadcast_to(np.asarray(kp, dtype=float), (12,)), np.tile(EFFORT_LIMIT, 4)
     kp, effort = np.asarray(kp, dtype=float), np.asarray(effort, dtype=float)
     if not (np.all(np.isfinite(kp)) and np.all(kp > 0) and np.all(np.isfinite(effort))
             and np.all(effort > 0)):

@@ -154,10 +154,11 @@ class LiftSchedule:
     excitation plays, the policy observes the lifted leg at ``q0 + excitation_seen (q - q0)``
     rad and ``excitation_seen dq`` rad/s (:func:`deploy.observation.observe_lifted_leg`; q0 the
     plan's start pose ``plan.q0``, where the hold held the leg and the excitation starts and
-    ends, not its mean pose): 1, the leg as measured; 0, still at q0. The policy's answer to the motion it sees, not the leg's reaction on the body, is
-    half of v43's body rotation over the excitation; shown none of it the policy loses lifts
-    on weak motors, which it meets by seeing where the leg is (docs/policy-training.md, stop
-    67). A JSON without it observes the leg as measured.
+    ends, not its mean pose): 1, the leg as measured; 0, still at q0. The policy's answer to
+    the motion it sees, not the leg's reaction on the body, is half of v43's body rotation
+    over the excitation; shown none of it the policy loses lifts on weak motors, which it meets
+    by seeing where the leg is (docs/policy-training.md, stop 67). A JSON without it observes
+    the leg as measured.
     """
 
     shift: float = 1.0

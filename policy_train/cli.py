@@ -53,10 +53,8 @@ __all__ = ["main"]
 
 
 def _tripod(a) -> int:
-    import numpy as np
     import torch
 
-    from calib.joints import EFFORT_LIMIT
     from deploy.action import lead_max_for_torque
     from policy_train.config import DRConfig, EnvConfig, RewardConfig, TrainConfig
     from policy_train.runner import Trainer, check_device
@@ -118,9 +116,7 @@ def _tripod(a) -> int:
         cfg.env.lift_kp, cfg.env.lift_kd = a.lift_gains
     if a.target_lead is not None:  # model order, as the run's gains
         cfg.env.target_lead_max = None if a.target_lead == "off" else tuple(
-            float(x) for x in lead_max_for_torque(
-                np.broadcast_to(np.asarray(cfg.env.kp, dtype=float), (12,)),
-                np.tile(EFFORT_LIMIT, 4)))
+            float(x) for x in lead_max_for_torque(cfg.env.kp))
     if a.calf_margin is not None:
         cfg.env.calf_upper_margin = a.calf_margin
     if a.calf_margin_ramp is not None:
@@ -657,8 +653,8 @@ def main(argv: list[str] | None = None) -> int:
     t.add_argument("--excitation-seen", type=_SEEN, default=None, metavar="F",
                    help="the fraction in [0, 1] of the lifted leg's excursion from its plan's "
                         "start pose (plan.q0) that the policy observes while it excites (a new "
-                        "run's 1, the leg as measured; the critic always sees it so); the export's JSON "
-                        "carries it, so deploy shows the leg as training did "
+                        "run's 1, the leg as measured; the critic always sees it so); the "
+                        "export's JSON carries it, so deploy shows the leg as training did "
                         "(docs/policy-training.md, stop 67)")
     t.add_argument("--target-lead", choices=("torque", "off"), default=None,
                    help="torque: hold each joint's target within effort / kp of the joint (the "
@@ -788,8 +784,8 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--excitation-seen", type=_SEEN, default=None, metavar="F",
                    help="the fraction in [0, 1] of the lifted leg's excursion from its plan's "
                    "start pose, plan.q0 (and of its joint velocities) that the policy observes "
-                   "while it excites: 1 as measured, 0 the leg still at that pose, as in the hold before "
-                   "(docs/policy-training.md, stop 67; default: the source's)")
+                   "while it excites: 1 as measured, 0 the leg still at that pose, as in the "
+                   "hold before (docs/policy-training.md, stop 67; default: the source's)")
     g.add_argument("--stand", type=_stand, default=None, metavar="GAIN|hold",
                    help="while no leg is lifted, the graph stands the robot itself instead of "
                    "playing the network's own stand. GAIN (in [0.01, 5)): at the default pose, "

@@ -208,8 +208,8 @@ class EnvConfig:
     # leg's motors)
     lift_adapt: bool = False
     # the fraction of the lifted leg's excursion from its plan's start pose (plan.q0) the policy
-    # observes while it excites (LiftSchedule's excitation_seen; deploy.observation.observe_lifted_leg;
-    # the critic sees the leg as measured): the export writes it, the evaluation plays the
+    # observes while it excites (LiftSchedule's excitation_seen;
+    # deploy.observation.observe_lifted_leg; the critic sees the leg as measured): the export writes it, the evaluation plays the
     # JSON's; every committed policy trained at 1
     excitation_seen: float = 1.0
     shift_s: float = 1.0

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from calib.atomic import write_bytes_atomic, write_text_atomic
-from calib.joints import EFFORT_LIMIT, SDK_JOINT_NAMES, check_leg, model_to_sdk
+from calib.joints import SDK_JOINT_NAMES, check_leg, model_to_sdk
 from deploy.action import lead_max_for_torque
 from deploy.lift_schedule import LiftSchedule
 from deploy.observation import OBS_SIZE
@@ -366,8 +366,8 @@ def derive_policy(source_onnx: str | Path, out_stem: str | Path, gains=None,
     if target_lead is None and gains is not None and "target_lead_max" in meta["action"]:
         target_lead = "torque"  # the source's bound, for the new gains
     if target_lead == "torque":
-        meta["action"] = {**meta["action"], "target_lead_max": lead_max_for_torque(
-            meta["kp"], np.tile(EFFORT_LIMIT, 4)).tolist()}
+        meta["action"] = {**meta["action"],
+                          "target_lead_max": lead_max_for_torque(meta["kp"]).tolist()}
     elif target_lead == "off":
         meta["action"] = {k: v for k, v in meta["action"].items() if k != "target_lead_max"}
     if adapt is not None:

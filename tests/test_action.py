@@ -42,3 +42,7 @@ def test_the_torque_bound_is_effort_over_kp_and_refuses_a_zero_gain():
                                [23.7 / 29.0, 45.43 / 26.0])
     with pytest.raises(ValueError, match="kp > 0"):
         lead_max_for_torque([0.0, 26.0], [23.7, 45.43])
+    # without effort limits: the Go2's, per joint, for one kp or 12
+    np.testing.assert_allclose(lead_max_for_torque(20.0)[:3], [23.7 / 20, 23.7 / 20, 45.43 / 20])
+    np.testing.assert_allclose(lead_max_for_torque([29.0, 29.0, 26.0] * 4)[9:],
+                               [23.7 / 29, 23.7 / 29, 45.43 / 26])

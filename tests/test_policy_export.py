@@ -707,7 +707,7 @@ def test_derive_sets_how_much_of_the_excitation_is_seen(exported, tmp_path, caps
     (["--gains", "29,0.7/29,0.7/0,0.5"], "--gains"), (["--lift-gains", "0,2"], "--lift-gains"),
     (["--t-r", "0"], "--t-r"), (["--t-r", "x"], "--t-r"), (["--stand", "0"], "--stand"),
     (["--stand", "5"], "--stand"), (["--stand", "x"], "--stand"),
-    (["--stand", "Hold"], "--stand")])
+    (["--stand", "Hold"], "--stand"), (["--target-lead", "on"], "--target-lead")])
 def test_bad_derive_exits_with_one_line(extra, hint, exported, tmp_path, capsys):
     from policy_train.cli import main
 
