@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import argparse
 
-from calib.excitation import ExcitationConfig, covariance_kappa, foot_omega, plan_excitation
+from calib.excitation import ExcitationConfig, foot_omega, plan_excitation
 from calib.joints import LEGS
 from calib.kinematics import LegKinematics
+from calib.metrics import condition_number
 from calib.motions import a2i_motion, baseline_motions
 
 
@@ -24,7 +25,7 @@ def _abs_kappa(motion, leg: str, kin: LegKinematics) -> float:
     t0, t1 = motion.steady_window
     keep = (motion.t >= t0) & (motion.t < t1)
     w = kin.foot_angular_velocity(q[keep], dq[keep], base_omega=motion.base_omega[keep])
-    return covariance_kappa(w)
+    return condition_number(w)
 
 
 def main() -> None:

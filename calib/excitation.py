@@ -52,6 +52,7 @@ from scipy.optimize import minimize
 
 from calib.atomic import write_text_atomic
 from calib.joints import VELOCITY_LIMIT, check_leg, is_front, is_left, pose_for_leg, position_limits
+from calib.metrics import condition_number
 
 # Lifted-leg pose of the tripod stance (left-leg signs; mirrored by pose_for_leg): hip neutral,
 # thigh raised, knee folded. The foot sits ~0.17 m below the hip axis, i.e. ~0.17 m above the
@@ -183,23 +184,12 @@ def foot_omega(q: np.ndarray, dq: np.ndarray) -> np.ndarray:
     return np.stack([dq[..., 0] * np.cos(s), dq[..., 1] + dq[..., 2], dq[..., 0] * np.sin(s)], -1)
 
 
-def covariance_kappa(omega: np.ndarray) -> float:
-    """Condition number of the covariance of ``omega`` (N, 3); inf when it is singular."""
-    w = np.asarray(omega, dtype=float)
-    if w.ndim != 2 or w.shape[1] != 3 or w.shape[0] < 2:
-        raise ValueError(f"omega must be (N >= 2, 3), got {w.shape}")
-    lam = np.linalg.eigvalsh(np.cov(w, rowvar=False))
-    if lam[-1] <= 0 or lam[0] <= lam[-1] * 1e-13:
-        return float("inf")
-    return float(lam[-1] / lam[0])
-
-
 def foot_kappa(q: np.ndarray, dq: np.ndarray) -> float:
     """kappa(Sigma_FF) of the relative foot angular velocity of one leg's joint trajectory.
 
     ``q``, ``dq``: (N, 3) rad, rad/s (hip, thigh, calf), uniformly sampled. inf if singular.
     """
-    return covariance_kappa(foot_omega(q, dq))
+    return condition_number(foot_omega(q, dq))
 
 
 # --------------------------------------------------------------------------------------------

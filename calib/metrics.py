@@ -32,10 +32,18 @@ def covariance(omega) -> np.ndarray:
     return np.cov(_as_samples(omega, "omega"), rowvar=False)
 
 
+def covariance_condition(cov) -> float:
+    """kappa = lambda_max / lambda_min of a symmetric positive semi-definite matrix; inf when it
+    is singular: a smallest eigenvalue at or under 1e-13 lambda_max is round-off, not signal."""
+    eig = np.linalg.eigvalsh(np.asarray(cov, dtype=float))
+    if not eig[-1] > 0 or not eig[0] > eig[-1] * 1e-13:
+        return float("inf")
+    return float(eig[-1] / eig[0])
+
+
 def condition_number(omega) -> float:
-    """kappa of the covariance of (N, 3) angular velocities (CN; ideal 1; inf if singular)."""
-    eig = np.linalg.eigvalsh(covariance(omega))
-    return float(eig[-1] / eig[0]) if eig[0] > 0 else float("inf")
+    """CN: kappa of the covariance of (N, 3) angular velocities (ideal 1; inf if singular)."""
+    return covariance_condition(covariance(omega))
 
 
 def trace_correlation(omega_i, omega_f) -> float:

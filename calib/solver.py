@@ -39,6 +39,8 @@ from scipy.interpolate import CubicSpline, PPoly
 from scipy.linalg import solveh_banded
 from scipy.optimize import minimize_scalar
 
+from calib.metrics import covariance_condition
+
 _PAIRS6 = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
@@ -521,9 +523,8 @@ def solve(t_enc, omega_foot, t_imu, omega_imu, config: SolverConfig | None = Non
     f = enc.pp(ss - tau)
     s_ii, s_if, s_ff = _covariances(f, ii_raw)
     r = float(np.sqrt(max(_trace_corr2(s_ii, s_if, s_ff), 0.0)))
-    eig = np.linalg.eigvalsh(s_ff)
-    lam_min, lam_max = float(eig[0]), float(eig[-1])
-    kappa = lam_max / lam_min if lam_min > 0 else float("inf")
+    lam_min = float(np.linalg.eigvalsh(s_ff)[0])
+    kappa = covariance_condition(s_ff)
     s_fi = s_if.T
     if cfg.rotation_method == "paper":
         rot = _project_so3(np.linalg.pinv(s_ff, rcond=1e-12, hermitian=True) @ s_fi)

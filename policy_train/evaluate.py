@@ -27,8 +27,9 @@ from pathlib import Path
 import numpy as np
 
 from calib.atomic import write_text_atomic
-from calib.excitation import base_to_foot, covariance_kappa, foot_omega
+from calib.excitation import base_to_foot, foot_omega
 from calib.joints import MODEL_LEGS, default_crouch, model_to_sdk, sdk_to_model
+from calib.metrics import condition_number
 from deploy.lift_schedule import PHASES, LiftSchedule
 from policy_train.config import RANDOMISATIONS, DRConfig, TrainConfig
 from policy_train.env import PlanPool, TripodEnv
@@ -215,7 +216,7 @@ def evaluate_policy(onnx_path, episodes: int = 100, legs=None, seed: int = 1, wr
         sel = leg_of == MODEL_LEGS.index(leg)
         ok = sel & (nexc > 0)
         held = ok & success
-        cn = [covariance_kappa(np.array(omega_f[i])) for i in np.flatnonzero(ok & success)
+        cn = [condition_number(np.array(omega_f[i])) for i in np.flatnonzero(ok & success)
               if len(omega_f[i]) > 10]
         rows[leg] = {
             "episodes": int(sel.sum()),

@@ -52,8 +52,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from calib.atomic import write_text_atomic
-from calib.excitation import covariance_kappa
 from calib.joints import LEGS, check_leg, model_indices
+from calib.metrics import condition_number
 from deploy.lift_gate import GATE_CAUSE, GateLimits
 from deploy.tip_guard import RETRY_SHIFT_S, TipLimits
 from sim.effects import (
@@ -308,7 +308,7 @@ def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed
     res.tilt_rms_deg = h.excite_tilt_rms_deg
     res.rate_rms = float(np.sqrt(np.mean(np.sum(run.base_gyro ** 2, axis=1))))
     res.track_rmse = float(np.sqrt(np.mean(track ** 2)))
-    res.cn = float(covariance_kappa(run.foot_omega[LEGS.index(leg)][steady]))
+    res.cn = float(condition_number(run.foot_omega[LEGS.index(leg)][steady]))
     return res
 
 

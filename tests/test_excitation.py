@@ -19,7 +19,6 @@ from calib.excitation import (
     ExcitationConfig,
     ExcitationProblem,
     contact_bounds,
-    covariance_kappa,
     foot_clearance_excess,
     foot_kappa,
     foot_omega,
@@ -29,6 +28,7 @@ from calib.excitation import (
     stance_foot_z,
 )
 from calib.joints import LEGS, VELOCITY_LIMIT, is_front, is_left, position_limits
+from calib.metrics import condition_number
 from calib.robot import go2_urdf_path
 
 LEG_Q = {leg: slice(3 * i, 3 * i + 3) for i, leg in enumerate(LEGS)}  # pinocchio = model order
@@ -115,7 +115,7 @@ def test_theorem1_parity_offdiagonals_vanish(seed, s0):
     scale = np.trace(sig)
     assert abs(sig[0, 1]) < 1e-9 * scale and abs(sig[0, 2]) < 1e-9 * scale
     # kappa is invariant to that constant rotation
-    assert covariance_kappa(w) == pytest.approx(covariance_kappa(w @ rot.T), rel=1e-9)
+    assert condition_number(w) == pytest.approx(condition_number(w @ rot.T), rel=1e-9)
 
 
 def test_foot_kappa_basic():
@@ -125,7 +125,7 @@ def test_foot_kappa_basic():
     dq[:, 0] = 0.0  # hip still: the foot turns about y only
     assert foot_kappa(q, dq) == float("inf")
     w = rng.normal(size=(200_000, 3))
-    assert covariance_kappa(w) < 1.05
+    assert condition_number(w) < 1.05
     with pytest.raises(ValueError):
         foot_kappa(np.zeros((5, 3)), np.zeros((5, 2)))
 

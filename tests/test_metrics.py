@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from calib.metrics import (
     condition_number,
+    covariance_condition,
     euler_rotation_error_deg,
     geodesic_error_deg,
     offset_error_s,
@@ -29,6 +30,18 @@ def test_condition_number_of_known_covariance():
     flat = w.copy()
     flat[:, 2] = 0.0
     assert condition_number(flat) == np.inf
+
+
+def test_condition_singular_to_round_off_is_inf():
+    # A motion about two axes only, turned off the axes: the third eigenvalue of its covariance
+    # comes out as round-off (tiny, either sign), which must read as singular, not as 1e16.
+    rng = np.random.default_rng(2)
+    w = np.zeros((5000, 3))
+    w[:, :2] = rng.standard_normal((5000, 2))
+    w = w @ Rotation.random(random_state=3).as_matrix().T
+    assert condition_number(w) == np.inf
+    assert covariance_condition(np.zeros((3, 3))) == np.inf
+    assert covariance_condition(np.diag([4.0, 2.0, 1.0])) == pytest.approx(4.0)
 
 
 def test_trace_correlation_one_for_rotated_copy_and_low_for_independent():
