@@ -285,6 +285,15 @@ class ResidualActor(torch.nn.Module):
         return self.mlp(x) + on * r
 
 
+def _as_network_reads(key: str, value):
+    """A JSON entry as far as its network is concerned: the action's ``target_lead_max`` is
+    deploy's bound on the targets around the joints (``derive --target-lead``), set beside the
+    network as its gains are, so a policy derived with it still names its network's action."""
+    if key == "action" and isinstance(value, dict):
+        return {k: v for k, v in value.items() if k != "target_lead_max"}
+    return value
+
+
 def build_actor(source_onnx: str | Path, leg: str, groups: int = 1,
                 meta_json: str | Path | None = None, velocity: bool = False,
                 kept: list[dict] = ()):
@@ -306,7 +315,7 @@ def build_actor(source_onnx: str | Path, leg: str, groups: int = 1,
     if meta_json is not None:
         named = json.loads(Path(meta_json).read_text())
         for key in ("observation", "action", "joint_order", "mirrored_legs"):
-            if named.get(key) != meta.get(key):
+            if _as_network_reads(key, named.get(key)) != _as_network_reads(key, meta.get(key)):
                 raise ValueError(f"{Path(meta_json).name}'s {key} is not its network's "
                                  f"({Path(source_onnx).name})")
         meta = named

@@ -258,6 +258,24 @@ def test_refining_a_derived_policy_keeps_its_deploy_settings(tmp_path):
         build_actor(V21, "FL", 1, V21.with_name("tripod_go2_v7.json"))
 
 
+def test_a_policy_derived_with_the_target_bound_refines_with_it(tmp_path):
+    """v51 is v46 derived with `--target-lead torque`: its action names the bound, its network's
+    (v21's) does not. The bound is deploy's, as the gains are, so the refinement takes v51 and
+    plays it; any other difference in the action is still refused."""
+    v51 = V21.with_name("tripod_go2_v51.json")
+    meta, _, _ = build_actor(V21, "FL", 1, v51)
+    assert meta["action"]["target_lead_max"] == json.loads(v51.read_text())["action"][
+        "target_lead_max"]
+    from policy_train.evaluate import evaluation_env
+    env, _ = evaluation_env(meta, ("FL",), 1, 0)
+    assert env.cfg.target_lead_max is not None  # the rollouts play the bound
+    bad = json.loads(v51.read_text())
+    bad["action"]["scale"] = 0.2
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    with pytest.raises(ValueError, match="action is not its network's"):
+        build_actor(V21, "FL", 1, tmp_path / "bad.json")
+
+
 def test_refining_a_policy_with_a_stand_keeps_it_in_its_graph(tmp_path):
     """The candidate v27 is v26 whose graph stands at the default pose while no leg is lifted
     (`derive --stand`): refined further (beside the network its refinement names, as a
