@@ -209,8 +209,8 @@ class EnvConfig:
     lift_adapt: bool = False
     # the fraction of the lifted leg's excursion from its plan's start pose (plan.q0) the policy
     # observes while it excites (LiftSchedule's excitation_seen;
-    # deploy.observation.observe_lifted_leg; the critic sees the leg as measured): the export writes it, the evaluation plays the
-    # JSON's; every committed policy trained at 1
+    # deploy.observation.observe_lifted_leg; the critic sees the leg as measured): the export
+    # writes it, the evaluation plays the JSON's; every committed policy trained at 1
     excitation_seen: float = 1.0
     shift_s: float = 1.0
     # {leg: s} lifts whose shift is not shift_s (the evaluation plays the JSON's shift_by_leg)

@@ -98,8 +98,8 @@ def deploy_flags(meta: dict) -> dict[str, str]:
 
     A derived policy (``a2i-train derive``) deploys the same network at other gains, lift gains,
     ``excitation_seen`` or target lead bound than it trained at, and ``--from-policy`` trains at
-    the training configuration's (as v21 was trained from v20 with ``--gains``): a fine-tune of such a policy
-    that forgets the flags learns on joints its deploy never plays."""
+    the training configuration's (as v21 was trained from v20 with ``--gains``): a fine-tune of
+    such a policy that forgets the flags learns on joints its deploy never plays."""
     env = meta["train_config"]["env"]
     sched = meta.get("lift_schedule") or {}
     out = {}
