@@ -118,6 +118,8 @@ class HipnucDecoder(StreamDecoder):
     """
 
     clock_wrap_us: int | None = CLOCK_WRAP_US
+    sync = SYNC
+    header_len = HEADER_LEN
 
     def __init__(
         self,
@@ -168,69 +170,28 @@ class HipnucDecoder(StreamDecoder):
             k += size
         return found
 
-    def _decode(self, final: bool) -> list[ImuFrame]:
-        buf = self._buf
-        out: list[ImuFrame] = []
-        n = len(buf)
-        pos = 0
-        search = 0
-        mv = memoryview(buf)
-        try:
-            while True:
-                i = buf.find(SYNC, search)
-                if i < 0:
-                    keep = 1 if n > pos and buf[n - 1] == SYNC[0] else 0
-                    self.bytes_discarded += n - keep - pos
-                    pos = n - keep
-                    break
-                if n - i < HEADER_LEN:
-                    if final:
-                        search = i + 1
-                        continue
-                    self.bytes_discarded += i - pos
-                    pos = i
-                    break
-                length = buf[i + 2] | (buf[i + 3] << 8)
-                if not 1 <= length <= MAX_PAYLOAD:
-                    self.length_errors += 1
-                    search = i + 1
-                    continue
-                end = i + HEADER_LEN + length
-                if end > n:
-                    if final:
-                        search = i + 1
-                        continue
-                    self.bytes_discarded += i - pos
-                    pos = i
-                    break
-                crc = binascii.crc_hqx(mv[i : i + 4], 0)
-                crc = binascii.crc_hqx(mv[i + HEADER_LEN : end], crc)
-                if crc != buf[i + 4] | (buf[i + 5] << 8):
-                    self.crc_errors += 1
-                    search = i + 1
-                    continue
-                self.bytes_discarded += i - pos
-                self.bytes_consumed += end - i
-                pos = search = end
-                offsets = self._imu_packets(buf, i + HEADER_LEN, end)
-                if not offsets:
-                    self.unknown_packets += 1
-                    continue
-                for k in offsets:
-                    vals = _IMU_PARTS.unpack_from(buf, k + 8)
-                    if not math.isfinite(sum(vals[1:])):
-                        self.invalid_frames += 1
-                        continue
-                    node = buf[k + 1] if self.node_id_from_packet else self.node_id
-                    ts_ms = vals[0]
-                    seq = self._seq_for(node, ts_ms)
-                    self._seq.update(node, seq)
-                    accel = tuple(a * GRAVITY_ENCODING for a in vals[1:4])
-                    gyro = tuple(g * DEG for g in vals[4:7])
-                    out.append(ImuFrame(node, seq, ts_ms * 1000, gyro, accel, vals[7:11]))
-        finally:
-            mv.release()
-        if pos:
-            del buf[:pos]
-        self.frames += len(out)
-        return out
+    def _frame_end(self, buf: bytearray, i: int) -> int:
+        length = buf[i + 2] | (buf[i + 3] << 8)
+        return i + HEADER_LEN + length if 1 <= length <= MAX_PAYLOAD else -1
+
+    def _crc_ok(self, mv: memoryview, i: int, end: int) -> bool:
+        crc = binascii.crc_hqx(mv[i : i + 4], 0)
+        return binascii.crc_hqx(mv[i + HEADER_LEN : end], crc) == mv[i + 4] | (mv[i + 5] << 8)
+
+    def _unpack(self, buf: bytearray, i: int, end: int, out: list[ImuFrame]) -> None:
+        offsets = self._imu_packets(buf, i + HEADER_LEN, end)
+        if not offsets:
+            self.unknown_packets += 1
+            return
+        for k in offsets:
+            vals = _IMU_PARTS.unpack_from(buf, k + 8)
+            if not math.isfinite(sum(vals[1:])):
+                self.invalid_frames += 1
+                continue
+            node = buf[k + 1] if self.node_id_from_packet else self.node_id
+            ts_ms = vals[0]
+            seq = self._seq_for(node, ts_ms)
+            self._seq.update(node, seq)
+            accel = tuple(a * GRAVITY_ENCODING for a in vals[1:4])
+            gyro = tuple(g * DEG for g in vals[4:7])
+            out.append(ImuFrame(node, seq, ts_ms * 1000, gyro, accel, vals[7:11]))

@@ -159,11 +159,14 @@ class StreamDecoder:
     (impossible length for the type, or beyond the protocol's maximum), ``invalid_frames``
     (CRC fine but a non-finite float), ``unknown_packets`` (CRC-valid packet of a type the
     decoder does not know: skipped whole), ``bytes_discarded`` and per-node ``seq_gaps``.
-    Invariant: bytes_fed == bytes_consumed + bytes_discarded + buffered. Subclasses implement
-    ``_decode(final)``, which consumes ``self._buf`` and returns the frames found.
+    Invariant: bytes_fed == bytes_consumed + bytes_discarded + buffered. The framing (sync
+    search, length, CRC, resynchronisation) is shared; a protocol gives its ``sync`` and
+    ``header_len``, and ``_frame_end``, ``_crc_ok`` and ``_unpack``.
     """
 
     clock_wrap_us: int | None = None
+    sync: bytes = b""  # the protocol's sync bytes
+    header_len: int = 0  # bytes from the sync to where the frame's length is known
 
     def __init__(self) -> None:
         self._buf = bytearray()
@@ -218,47 +221,49 @@ class StreamDecoder:
         self._buf.clear()
         return out
 
-    def _decode(self, final: bool) -> list[ImuFrame]:
+    def _frame_end(self, buf: bytearray, i: int) -> int:
+        """The end (exclusive) of the frame whose header starts at ``buf[i]`` (``header_len``
+        bytes there), or -1 where the header announces a length the protocol cannot have."""
         raise NotImplementedError
 
+    def _crc_ok(self, mv: memoryview, i: int, end: int) -> bool:
+        """Whether the frame ``mv[i:end]`` carries a valid CRC."""
+        raise NotImplementedError
 
-class FrameDecoder(StreamDecoder):
-    """Streaming decoder of A2I frames; feed arbitrary chunks, get whole frames (counters:
-    :class:`StreamDecoder`)."""
-
-    clock_wrap_us: int | None = None  # u64 microseconds: never wraps in practice
+    def _unpack(self, buf: bytearray, i: int, end: int, out: list[ImuFrame]) -> None:
+        """Append the IMU samples of the CRC-valid frame ``buf[i:end]`` to ``out``, counting
+        ``unknown_packets`` and ``invalid_frames``."""
+        raise NotImplementedError
 
     def _decode(self, final: bool) -> list[ImuFrame]:
+        """Consume ``self._buf``: every frame whose header, length and CRC hold, in order. After
+        a rejected candidate the search resumes one byte after its sync, so a real frame that
+        starts inside garbage is kept; a candidate still incomplete waits for more bytes unless
+        ``final``."""
         buf = self._buf
         out: list[ImuFrame] = []
         n = len(buf)
         pos = 0  # start of the bytes not yet consumed or discarded
         search = 0  # where the next sync search starts (> pos after a rejection)
+        sync, header_len = self.sync, self.header_len
+        frame_end, crc_ok, unpack = self._frame_end, self._crc_ok, self._unpack
         mv = memoryview(buf)
         try:
             while True:
-                i = buf.find(SYNC, search)
+                i = buf.find(sync, search)
                 if i < 0:
                     # Keep a trailing first sync byte: its partner may come next.
-                    keep = 1 if n > pos and buf[n - 1] == SYNC[0] else 0
+                    keep = 1 if n > pos and buf[n - 1] == sync[0] else 0
                     self.bytes_discarded += n - keep - pos
                     pos = n - keep
                     break
-                if n - i < HEADER_LEN:
-                    if final:
+                end = i + header_len
+                if end <= n:
+                    end = frame_end(buf, i)
+                    if end < 0:
+                        self.length_errors += 1
                         search = i + 1
                         continue
-                    self.bytes_discarded += i - pos
-                    pos = i
-                    break
-                length = buf[i + 2]
-                ptype = buf[i + 3]
-                expected = _KNOWN_LENGTHS.get(ptype)
-                if (expected is not None and length != expected) or length > MAX_PAYLOAD:
-                    self.length_errors += 1
-                    search = i + 1
-                    continue
-                end = i + HEADER_LEN + length + 2
                 if end > n:
                     if final:
                         search = i + 1
@@ -266,36 +271,57 @@ class FrameDecoder(StreamDecoder):
                     self.bytes_discarded += i - pos
                     pos = i
                     break
-                crc_rx = buf[end - 2] | (buf[end - 1] << 8)
-                if binascii.crc_hqx(mv[i + 2 : end - 2], 0xFFFF) != crc_rx:
+                if not crc_ok(mv, i, end):
                     self.crc_errors += 1
                     search = i + 1
                     continue
                 self.bytes_discarded += i - pos
                 self.bytes_consumed += end - i
                 pos = search = end
-                if expected is None:
-                    self.unknown_packets += 1
-                    continue
-                vals = _IMU_BODY.unpack_from(buf, i + HEADER_LEN)
-                # Each f32 is exactly representable in f64 and 10 of them cannot
-                # overflow a double, so the sum is finite iff every value is.
-                if not math.isfinite(sum(vals[3:])):
-                    self.invalid_frames += 1
-                    continue
-                node, seq = vals[0], vals[1]
-                last_t = self._last_t.get(node)
-                self._last_t[node] = vals[2]
-                if last_t is not None and vals[2] < last_t:
-                    self._seq.reboot(node)
-                self._seq.update(node, seq)
-                out.append(ImuFrame(node, seq, vals[2], vals[3:6], vals[6:9], vals[9:13]))
+                unpack(buf, i, end, out)
         finally:
             mv.release()
         if pos:
             del buf[:pos]
         self.frames += len(out)
         return out
+
+
+class FrameDecoder(StreamDecoder):
+    """Streaming decoder of A2I frames; feed arbitrary chunks, get whole frames (counters:
+    :class:`StreamDecoder`)."""
+
+    clock_wrap_us: int | None = None  # u64 microseconds: never wraps in practice
+    sync = SYNC
+    header_len = HEADER_LEN
+
+    def _frame_end(self, buf: bytearray, i: int) -> int:
+        length = buf[i + 2]
+        expected = _KNOWN_LENGTHS.get(buf[i + 3])
+        if (expected is not None and length != expected) or length > MAX_PAYLOAD:
+            return -1
+        return i + HEADER_LEN + length + 2
+
+    def _crc_ok(self, mv: memoryview, i: int, end: int) -> bool:
+        return binascii.crc_hqx(mv[i + 2 : end - 2], 0xFFFF) == mv[end - 2] | (mv[end - 1] << 8)
+
+    def _unpack(self, buf: bytearray, i: int, end: int, out: list[ImuFrame]) -> None:
+        if buf[i + 3] not in _KNOWN_LENGTHS:
+            self.unknown_packets += 1
+            return
+        vals = _IMU_BODY.unpack_from(buf, i + HEADER_LEN)
+        # Each f32 is exactly representable in f64 and 10 of them cannot
+        # overflow a double, so the sum is finite iff every value is.
+        if not math.isfinite(sum(vals[3:])):
+            self.invalid_frames += 1
+            return
+        node, seq = vals[0], vals[1]
+        last_t = self._last_t.get(node)
+        self._last_t[node] = vals[2]
+        if last_t is not None and vals[2] < last_t:
+            self._seq.reboot(node)
+        self._seq.update(node, seq)
+        out.append(ImuFrame(node, seq, vals[2], vals[3:6], vals[6:9], vals[9:13]))
 
 
 def make_decoder(protocol: str, **kwargs) -> FrameDecoderLike:
