@@ -267,6 +267,7 @@ def _transfer(a) -> int:
         load_results,
         merge_results,
         model_identity,
+        physics_rates,
         summarise,
         timed_run,
         write_results,
@@ -277,6 +278,7 @@ def _transfer(a) -> int:
             print(f"{s.name:15s} {s.description}")
         return 0
     model = model_identity(a.model_xml)  # a file that is no Go2 model is refused at once
+    physics_rates(a.timestep)  # and a step that does not divide the tick
     page = None
     if a.append:  # checked before the run: a page it cannot join is refused at once
         import json
@@ -287,14 +289,14 @@ def _transfer(a) -> int:
         run_legs = a.legs or json.loads(Path(a.onnx).with_suffix(".json").read_text()).get(
             "legs", list(LEGS))
         merge_results(page, [], a.onnx, a.seed, run_legs, a.episodes, model, a.max_tip,
-                      a.lift_gate)
+                      a.lift_gate, a.timestep)
     n = a.episodes * len(a.scenarios) * len(a.legs or (1, 1, 1, 1))
     on = "" if model is None else f" on {a.model_xml}"
     print(f"transfer: {a.onnx}{on}, scenarios {', '.join(a.scenarios)}, about {n} episodes",
           flush=True)
     res, elapsed = timed_run(a.onnx, a.scenarios, a.legs, a.episodes, a.seed, a.workers,
                              log=lambda s: print(s, flush=True), model_xml=a.model_xml,
-                             max_tip=a.max_tip, lift_gate=a.lift_gate)
+                             max_tip=a.max_tip, lift_gate=a.lift_gate, timestep=a.timestep)
     for s, x in summarise(res).items():
         legs = " ".join(f"{g} {100 * v:.0f} %" for g, v in x["legs"].items())
         print(f"{s:15s} success {100 * x['success']:5.1f} % ({legs}); rate "
@@ -303,9 +305,10 @@ def _transfer(a) -> int:
     if not a.no_write:
         if page is not None:
             res = merge_results(page, res, a.onnx, a.seed, run_legs, a.episodes, model,
-                                a.max_tip, a.lift_gate)
+                                a.max_tip, a.lift_gate, a.timestep)
             elapsed += page[0]["elapsed_s"] or 0.0
-        write_results(res, a.out, a.onnx, a.seed, elapsed, model, a.max_tip, a.lift_gate)
+        write_results(res, a.out, a.onnx, a.seed, elapsed, model, a.max_tip, a.lift_gate,
+                      a.timestep)
         print(f"wrote {a.out} and {Path(a.out).with_suffix('.json')}")
     return 0
 
@@ -321,6 +324,8 @@ def _compare(a) -> int:
     if names[0] == names[1]:  # one policy on two models (sim to sim), or twice
         names = [f"{Path(m['model']['path']).parent.name}/{Path(m['model']['path']).stem}"
                  if m["model"] else "URDF" for m in (meta_a, meta_b)]
+        if meta_a["timestep"] != meta_b["timestep"]:  # one model at two physics steps
+            names = [f"{n} at {1e3 * m['timestep']:g} ms" for n, m in zip(names, (meta_a, meta_b))]
         if names[0] == names[1]:
             names = ["A", "B"]
     print(render_comparison(compare(eps_a, eps_b), *names), end="")
@@ -898,6 +903,11 @@ def main(argv: list[str] | None = None) -> int:
                         "the floor once the estimated centre of mass stands MM mm inside the "
                         "stance triangle, the shift held up to S s longer for it (e.g. 20,2, "
                         "deploy's default; default: off, the lift on time)")
+    x.add_argument("--timestep", type=float, default=0.001, metavar="S",
+                   help="the simulator's physics step, s, dividing the policy's 20 ms tick "
+                        "(default 0.001, the mock's; 0.005 is the training's 200 Hz, the motor "
+                        "PD law here still computed explicitly every step, as a checker's "
+                        "script may)")
     c = sub.add_parser("compare", help="two transfer runs of the same seed, paired episode by "
                                        "episode (which policy holds more of the same draws)")
     c.add_argument("episodes_files", nargs=2, metavar="EPISODES_JSON",

@@ -20,6 +20,11 @@ with a :class:`Scenario`'s perturbations drawn afresh per episode:
   damping, rotor inertia and dry friction a checker's own simulation may well carry; a floor
   that is not level), or without the sensor noise.
 
+With ``timestep`` (``--timestep``) the simulator steps at another rate than the mock's 1 kHz, the
+motor PD law still computed explicitly every step, as a checker's script may run it (the
+training's 200 Hz is 0.005 s); the policy's gains need either a step that short or damping the
+integrator takes implicitly (``docs/policy-format.md``, "Motors").
+
 With ``model_xml`` (``a2i-train transfer --model-xml``) every episode runs on another MJCF model
 of the Go2 instead of the URDF's (:mod:`sim.external_model`, e.g. MuJoCo Menagerie's): a sim-to-sim
 check, on the geometry, masses, joints and contacts a checker's own script may load. Its pages
@@ -74,6 +79,10 @@ __all__ = ["SCENARIOS", "EpisodeResult", "PairedScenario", "Scenario", "compare"
            "load_results", "merge_results", "model_identity", "push_summary", "render_comparison",
            "render_markdown", "run_episode", "run_transfer", "summarise", "timed_run",
            "write_results"]
+
+TIMESTEP_S = 0.001
+"""The mock's physics step, s: the transfer check's default."""
+
 
 @dataclass(frozen=True)
 class Scenario:
@@ -255,6 +264,25 @@ TOP_CAUSES = 6
 """Failure kinds shown per scenario on the page."""
 
 
+def physics_rates(timestep: float, control_dt: float = 0.02) -> tuple[int, int]:
+    """(command frames per policy tick, physics steps per recorded sample) at a physics step of
+    ``timestep`` s under a ``control_dt`` s tick. Deploy sends
+    :data:`deploy.lift_schedule.COMMANDS_PER_TICK` frames a tick; a tick of fewer or other
+    physics steps gets the most frames up to that which its steps divide into (4 at 5 ms, one a
+    step). Samples are recorded at 500 Hz, or every step where the step is longer (the
+    encoders' rate on the mock). ValueError where the step does not divide the tick."""
+    from deploy.lift_schedule import COMMANDS_PER_TICK
+
+    if not (math.isfinite(timestep) and 0.0 < timestep <= control_dt):
+        raise ValueError(f"timestep must be in (0, {control_dt:g}] s, got {timestep!r}")
+    n = round(control_dt / timestep)
+    if abs(n * timestep - control_dt) > 1e-9:
+        raise ValueError(f"timestep {timestep:g} s does not divide the policy's "
+                         f"{control_dt:g} s tick")
+    frames = max(k for k in range(1, COMMANDS_PER_TICK + 1) if n % k == 0)
+    return frames, max(1, round(0.002 / timestep))
+
+
 def _episode_seed(seed: int, scenario: str, leg: str, episode: int) -> np.random.Generator:
     key = [seed, list(SCENARIOS).index(scenario) if scenario in SCENARIOS else 99,
            LEGS.index(leg), episode]
@@ -263,22 +291,26 @@ def _episode_seed(seed: int, scenario: str, leg: str, episode: int) -> np.random
 
 def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed: int = 1,
                 periods: int | None = None, model_xml: str | None = None,
-                max_tip=None, lift_gate=None) -> EpisodeResult:
+                max_tip=None, lift_gate=None, timestep: float = TIMESTEP_S) -> EpisodeResult:
     """One calibration of ``leg`` by the policy under ``scenario`` (its draws from ``seed``,
     the scenario, the leg and ``episode``). periods: None for the JSON's. model_xml: another
     MJCF model of the Go2 (:mod:`sim.external_model`; None: the URDF's). max_tip: deploy's
     tip guard with these limits (:class:`deploy.tip_guard.TipLimits`, a number or a (lift,
     hold) pair, deg; None: off, the policy alone). lift_gate: deploy's lift gate
     (:class:`deploy.lift_gate.GateLimits`, a margin in m or a (margin m, wait s) pair; None:
-    off). A lift either calls off is lifted again as on board."""
+    off). A lift either calls off is lifted again as on board. timestep: the simulator's
+    physics step, s (:func:`physics_rates`)."""
     from policy_train.policy_motion import run_policy_a2i
+
+    frames, record_every = physics_rates(timestep)
 
     def attempt(extra_shift_s=0.0):
         effects, dist = scenario.draw(_episode_seed(seed, scenario.name, leg, episode))
         return run_policy_a2i(onnx_path, leg, periods=periods, effects=effects,
                               disturbance=dist, model_xml=model_xml,
                               max_tip=max_tip, lift_gate=lift_gate,
-                              extra_shift_s=extra_shift_s)
+                              extra_shift_s=extra_shift_s, timestep=timestep,
+                              record_every=record_every, commands_per_tick=frames)
 
     run, h = attempt()
     retried = None
@@ -349,12 +381,13 @@ def _saved_by(model: dict) -> str:
 def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int = 1,
                  workers: int | None = None, periods: int | None = None,
                  progress=None, model_xml: str | None = None,
-                 max_tip=None, lift_gate=None) -> list[EpisodeResult]:
+                 max_tip=None, lift_gate=None,
+                 timestep: float = TIMESTEP_S) -> list[EpisodeResult]:
     """``episodes`` per leg of ``legs`` (default: the legs the policy's JSON lists) under each
     of ``scenarios`` (names of :data:`SCENARIOS`). workers: processes (None: all cores).
     progress(done, total): optional. model_xml: another MJCF model of the Go2 to run on
     (:mod:`sim.external_model`; None: the URDF's). max_tip, lift_gate: deploy's tip guard and
-    lift gate, as :func:`run_episode`."""
+    lift gate, timestep: the physics step (s), as :func:`run_episode`."""
     from pathlib import Path
 
     max_tip = TipLimits.of(max_tip)  # a bad limit is refused before any worker starts
@@ -368,6 +401,7 @@ def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int 
     onnx_path = Path(onnx_path)
     meta = json.loads(onnx_path.with_suffix(".json").read_text())
     legs = [check_leg(g) for g in (legs or meta.get("legs", LEGS))]
+    physics_rates(timestep, float(meta["control_dt"]))
     # a model or a scenario it cannot take is refused before any worker starts
     from sim.go2 import SimConfig, build_model_for
 
@@ -375,11 +409,11 @@ def run_transfer(onnx_path, scenarios, legs=None, episodes: int = 25, seed: int 
     for s in scenarios:
         effects, _ = SCENARIOS[s].draw(_episode_seed(seed, s, legs[0], 0))
         try:
-            build_model_for(SimConfig(effects=effects, model_xml=model_xml))
+            build_model_for(SimConfig(effects=effects, model_xml=model_xml, timestep=timestep))
         except ValueError as e:
             raise ValueError(f"scenario {s}: {str(e).splitlines()[0]}") from None
     jobs = [(str(onnx_path), SCENARIOS[s], leg, e, seed, periods, model_xml, max_tip,
-             lift_gate) for s in scenarios for leg in legs for e in range(episodes)]
+             lift_gate, timestep) for s in scenarios for leg in legs for e in range(episodes)]
     out: list[EpisodeResult] = []
     with ProcessPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
         for i, r in enumerate(pool.map(_job, jobs), 1):
@@ -486,11 +520,11 @@ def push_summary(results: list[EpisodeResult]) -> dict:
 
 def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
                     elapsed_s: float | None = None, model: dict | None = None,
-                    max_tip=None, lift_gate=None) -> str:
+                    max_tip=None, lift_gate=None, timestep: float = TIMESTEP_S) -> str:
     """The page of ``a2i-train transfer`` (one row per scenario); model: the
     :func:`model_identity` of the model it ran on (None: the URDF's); max_tip, lift_gate: the
     tip guard's limits and the lift gate it ran with (:class:`deploy.tip_guard.TipLimits`,
-    :class:`deploy.lift_gate.GateLimits`; None: off)."""
+    :class:`deploy.lift_gate.GateLimits`; None: off); timestep: its physics step, s."""
     max_tip = TipLimits.of(max_tip)
     lift_gate = GateLimits.of(lift_gate)
     summ = summarise(results)
@@ -502,6 +536,9 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
     model_arg = "" if model is None else f" --model-xml {model['path']}"
     tip_arg = "" if max_tip is None else f" --max-tip {max_tip}"
     gate_arg = "" if lift_gate is None else f" --lift-gate {lift_gate}"
+    step_arg = "" if timestep == TIMESTEP_S else f" --timestep {timestep:g}"
+    rate = ("1 kHz" if timestep == TIMESTEP_S else
+            f"{1.0 / timestep:g} Hz, the motor PD law computed explicitly every step")
     limits = (None if max_tip is None else f"{max_tip.lift:g} deg" if max_tip.lift == max_tip.hold
               else f"{max_tip.lift:g} deg lifting, {max_tip.hold:g} deg holding")
     guard = ("the policy alone (deploy's tip guard, `deploy/tip_guard.py`, off)"
@@ -527,8 +564,9 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
         "# Tripod policy transfer: a second simulator, perturbations not trained for",
         "",
         (f"Produced by `a2i-train transfer {policy}{scen_arg} --episodes {n} --seed {seed}"
-        f"{leg_arg}{model_arg}{tip_arg}{gate_arg}` (`policy_train/transfer.py`): each episode is one calibration of one "
-        "leg by the on-board runner on `sim.go2` (1 kHz, free base on the floor: the mock "
+        f"{leg_arg}{model_arg}{tip_arg}{gate_arg}{step_arg}` (`policy_train/transfer.py`): each "
+        f"episode is one calibration of one leg by the on-board runner on `sim.go2` ({rate}, "
+        "free base on the floor: the mock "
         f"robot's simulator, not the training environment) with {on_model}, and the "
         "scenario's perturbations drawn afresh. Success: no fall and no body but a foot on the "
         "floor over the whole run, and the lifted foot never down over hold and excitation; "
@@ -592,16 +630,17 @@ def render_markdown(results: list[EpisodeResult], policy: str, seed: int,
 
 def write_results(results: list[EpisodeResult], out_md, policy: str, seed: int,
                   elapsed_s: float | None = None, model: dict | None = None,
-                  max_tip=None, lift_gate=None) -> None:
+                  max_tip=None, lift_gate=None, timestep: float = TIMESTEP_S) -> None:
     """The markdown page at ``out_md`` and the episodes beside it (``.json``), atomically;
-    model: the :func:`model_identity` of the model it ran on (None: the URDF's)."""
+    model: the :func:`model_identity` of the model it ran on (None: the URDF's); timestep: its
+    physics step, s."""
     from pathlib import Path
 
     out_md = Path(out_md)
     max_tip = TipLimits.of(max_tip)
     lift_gate = GateLimits.of(lift_gate)
     write_text_atomic(out_md, render_markdown(results, policy, seed, elapsed_s, model, max_tip,
-                                              lift_gate))
+                                              lift_gate, timestep))
     # one episode per line: a few hundred short rows stay small and diff well
     meta = {"policy": policy, "seed": seed, "elapsed_s": elapsed_s}
     if model is not None:  # pages on the URDF's model keep their earlier form
@@ -610,13 +649,15 @@ def write_results(results: list[EpisodeResult], out_md, policy: str, seed: int,
         meta["max_tip_deg"] = max_tip.to_json()
     if lift_gate is not None:
         meta["lift_gate"] = lift_gate.to_json()
+    if timestep != TIMESTEP_S:  # and those at the mock's 1 kHz theirs
+        meta["timestep_s"] = timestep
     head = json.dumps(meta)[:-1]
     rows = ",\n".join(json.dumps(dataclasses.asdict(r)) for r in results)
     write_text_atomic(out_md.with_suffix(".json"), f'{head}, "episodes": [\n{rows}\n]}}\n')
 
 
 def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None, log=print,
-              model_xml=None, max_tip=None, lift_gate=None):
+              model_xml=None, max_tip=None, lift_gate=None, timestep=TIMESTEP_S):
     """:func:`run_transfer` with a progress line every 10 % or every minute, whichever
     comes first, and the time left at the rate so far (for the CLI)."""
     t0 = time.time()
@@ -632,15 +673,16 @@ def timed_run(onnx_path, scenarios, legs, episodes, seed, workers, periods=None,
             log(f"  {done}/{total} episodes, {now - t0:.0f} s{left}")
 
     res = run_transfer(onnx_path, scenarios, legs, episodes, seed, workers, periods, progress,
-                       model_xml, max_tip, lift_gate)
+                       model_xml, max_tip, lift_gate, timestep)
     return res, time.time() - t0
 
 
 def load_results(path) -> tuple[dict, list[EpisodeResult]]:
     """The episodes file :func:`write_results` wrote: ({"policy", "seed", "elapsed_s",
-    "model", "max_tip", "lift_gate"}, episodes); "model" None for the URDF's, "max_tip" (a
-    :class:`deploy.tip_guard.TipLimits`) and "lift_gate" (a
-    :class:`deploy.lift_gate.GateLimits`) None for the policy alone."""
+    "model", "max_tip", "lift_gate", "timestep"}, episodes); "model" None for the URDF's,
+    "max_tip" (a :class:`deploy.tip_guard.TipLimits`) and "lift_gate" (a
+    :class:`deploy.lift_gate.GateLimits`) None for the policy alone, "timestep" the physics
+    step, s."""
     from pathlib import Path
 
     try:
@@ -650,6 +692,7 @@ def load_results(path) -> tuple[dict, list[EpisodeResult]]:
         meta["model"] = d.get("model")
         meta["max_tip"] = TipLimits.of(d.get("max_tip_deg"))
         meta["lift_gate"] = GateLimits.of(d.get("lift_gate"))
+        meta["timestep"] = float(d.get("timestep_s", TIMESTEP_S))
     except (KeyError, TypeError, ValueError) as e:
         raise ValueError(f"{path}: not a transfer episodes file ({e})") from None
     return meta, eps
@@ -658,12 +701,13 @@ def load_results(path) -> tuple[dict, list[EpisodeResult]]:
 def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResult],
                   policy: str, seed: int, legs, episodes: int,
                   model: dict | None = None,
-                  max_tip=None, lift_gate=None) -> list[EpisodeResult]:
+                  max_tip=None, lift_gate=None,
+                  timestep: float = TIMESTEP_S) -> list[EpisodeResult]:
     """A page's episodes (:func:`load_results`) with ``new``'s scenarios added or replaced, in
     :data:`SCENARIOS`' order: the page one command over every scenario would have written, since
     an episode's draws depend only on the seed, its scenario, leg and number. ValueError unless
     the page has this policy, seed, legs, episodes per leg and scenario, model
-    (:func:`model_identity`, compared by its hash), tip guard and lift gate."""
+    (:func:`model_identity`, compared by its hash), tip guard, lift gate and physics step."""
     meta, old = page
     old_legs = list(dict.fromkeys(r.leg for r in old))
     per = {(r.scenario, r.leg) for r in old}
@@ -681,7 +725,9 @@ def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResul
                            ("model", _model(old_model),
                             _model(old_model) if same_model else _model(new_model)),
                            ("tip guard", meta.get("max_tip"), TipLimits.of(max_tip)),
-                           ("lift gate", meta.get("lift_gate"), GateLimits.of(lift_gate))):
+                           ("lift gate", meta.get("lift_gate"), GateLimits.of(lift_gate)),
+                           ("a physics step of (s)", meta.get("timestep", TIMESTEP_S),
+                            float(timestep))):
         if was != now:
             raise ValueError(f"the page has {what} {was}, not {now}: write a new page")
     redone = {r.scenario for r in new}

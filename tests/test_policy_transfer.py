@@ -21,9 +21,11 @@ from policy_train.policy_motion import Disturbance
 from policy_train.transfer import (
     SCENARIOS,
     EpisodeResult,
+    Scenario,
     compare,
     load_results,
     merge_results,
+    physics_rates,
     push_summary,
     render_markdown,
     run_episode,
@@ -465,6 +467,60 @@ def test_a_page_records_its_lift_gate(tmp_path):
     write_results(res, tmp_path / "q.md", "p.onnx", 1, 1.0)  # the policy alone: as before
     assert "lift_gate" not in json.loads((tmp_path / "q.json").read_text())
     assert load_results(tmp_path / "q.json")[0]["lift_gate"] is None
+
+
+def test_physics_rates_fit_deploys_frames_into_the_tick():
+    assert physics_rates(0.001) == (5, 2)  # the mock: 5 frames a tick, 500 Hz records
+    assert physics_rates(0.002) == (5, 1)
+    assert physics_rates(0.0025) == (4, 1)
+    assert physics_rates(0.005) == (4, 1)  # the training's 200 Hz: a frame a step
+    assert physics_rates(0.02) == (1, 1)
+    for bad, why in [(0.003, "does not divide the policy's 0.02 s tick"),
+                     (0.0, "must be in"), (0.04, "must be in"), (float("nan"), "must be in")]:
+        with pytest.raises(ValueError, match=why):
+            physics_rates(bad)
+
+
+def test_a_page_records_its_physics_step(tmp_path, capsys):
+    res = _run({"nominal": [True, False]})
+    write_results(res, tmp_path / "p.md", "p.onnx", 1, 1.0, timestep=0.005)
+    text = (tmp_path / "p.md").read_text()
+    assert "--timestep 0.005`" in text
+    assert "(200 Hz, the motor PD law computed explicitly every step" in text
+    meta, eps = load_results(tmp_path / "p.json")
+    assert meta["timestep"] == 0.005
+    merge_results((meta, eps), [], "p.onnx", 1, ["FL"], 2, timestep=0.005)
+    with pytest.raises(ValueError, match=r"the page has a physics step of \(s\) 0.005, not 0.001"):
+        merge_results((meta, eps), [], "p.onnx", 1, ["FL"], 2)
+    write_results(res, tmp_path / "q.md", "p.onnx", 1, 1.0)  # the mock's 1 kHz: as before
+    assert "timestep_s" not in json.loads((tmp_path / "q.json").read_text())
+    assert "(1 kHz, free base" in (tmp_path / "q.md").read_text()
+    assert load_results(tmp_path / "q.json")[0]["timestep"] == 0.001
+    # the CLI refuses a step that does not divide the tick before anything runs
+    if POLICY.is_file():
+        assert main(["transfer", str(POLICY), "--timestep", "0.003", "--no-write"]) == 2
+        assert "does not divide the policy's 0.02 s tick" in capsys.readouterr().err
+    # two pages of one model at two steps compare under names that tell them apart
+    write_results(res, tmp_path / "q.md", "p.onnx", 1, 1.0)
+    assert main(["compare", str(tmp_path / "q.json"), str(tmp_path / "p.json")]) == 0
+    assert "URDF at 1 ms" in capsys.readouterr().out
+
+
+def test_the_deploy_policys_gains_need_a_short_step_or_damped_joints_at_200_hz():
+    """docs/policy-format.md, "Motors": the JSON's hip and thigh kd (8) and the lifted leg's
+    gains, computed explicitly every 5 ms, diverge on the URDF's bare joints (no rotor
+    inertia, no damping); with Menagerie's joints (damping MuJoCo integrates implicitly, rotor
+    inertia) the same 200 Hz runner holds the lift."""
+    v51 = POLICY.with_name("tripod_go2_v51.onnx")
+    if not v51.is_file():
+        pytest.skip("no v51")
+    bare = run_episode(str(v51), SCENARIOS["nominal"], "FL", 0, periods=1, timestep=0.005)
+    assert not bare.success and "fall" in bare.causes
+    joints = Scenario("menagerie_joints", "Menagerie's joint model", joint_damping=(2.0, 2.0),
+                      armature=(0.01, 0.01), joint_friction=(0.2, 0.2))
+    damped = run_episode(str(v51), joints, "FL", 0, periods=1, timestep=0.005)
+    assert damped.success and damped.tilt_rms_deg < 3 and damped.rate_rms < 0.1
+    assert damped.track_rmse < 0.05
 
 
 @pytest.mark.parametrize("argv, message", [
