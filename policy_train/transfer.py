@@ -726,7 +726,7 @@ def merge_results(page: tuple[dict, list[EpisodeResult]], new: list[EpisodeResul
                             _model(old_model) if same_model else _model(new_model)),
                            ("tip guard", meta.get("max_tip"), TipLimits.of(max_tip)),
                            ("lift gate", meta.get("lift_gate"), GateLimits.of(lift_gate)),
-                           ("a physics step of (s)", meta.get("timestep", TIMESTEP_S),
+                           ("physics step (s)", meta.get("timestep", TIMESTEP_S),
                             float(timestep))):
         if was != now:
             raise ValueError(f"the page has {what} {was}, not {now}: write a new page")

@@ -490,7 +490,7 @@ def test_a_page_records_its_physics_step(tmp_path, capsys):
     meta, eps = load_results(tmp_path / "p.json")
     assert meta["timestep"] == 0.005
     merge_results((meta, eps), [], "p.onnx", 1, ["FL"], 2, timestep=0.005)
-    with pytest.raises(ValueError, match=r"the page has a physics step of \(s\) 0.005, not 0.001"):
+    with pytest.raises(ValueError, match=r"the page has physics step \(s\) 0.005, not 0.001"):
         merge_results((meta, eps), [], "p.onnx", 1, ["FL"], 2)
     write_results(res, tmp_path / "q.md", "p.onnx", 1, 1.0)  # the mock's 1 kHz: as before
     assert "timestep_s" not in json.loads((tmp_path / "q.json").read_text())
