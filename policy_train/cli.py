@@ -277,17 +277,17 @@ def _transfer(a) -> int:
         for s in SCENARIOS.values():
             print(f"{s.name:15s} {s.description}")
         return 0
+    import json
+
     model = model_identity(a.model_xml)  # a file that is no Go2 model is refused at once
-    physics_rates(a.timestep)  # and a step that does not divide the tick
+    meta = json.loads(Path(a.onnx).with_suffix(".json").read_text())
+    physics_rates(a.timestep, float(meta["control_dt"]))  # and a step that splits no tick
     page = None
     if a.append:  # checked before the run: a page it cannot join is refused at once
-        import json
-
         from calib.joints import LEGS
 
         page = load_results(Path(a.out).with_suffix(".json"))
-        run_legs = a.legs or json.loads(Path(a.onnx).with_suffix(".json").read_text()).get(
-            "legs", list(LEGS))
+        run_legs = a.legs or meta.get("legs", list(LEGS))
         merge_results(page, [], a.onnx, a.seed, run_legs, a.episodes, model, a.max_tip,
                       a.lift_gate, a.timestep)
     n = a.episodes * len(a.scenarios) * len(a.legs or (1, 1, 1, 1))

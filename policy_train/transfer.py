@@ -266,7 +266,8 @@ TOP_CAUSES = 6
 
 def physics_rates(timestep: float, control_dt: float = 0.02) -> tuple[int, int]:
     """(command frames per policy tick, physics steps per recorded sample) at a physics step of
-    ``timestep`` s under a ``control_dt`` s tick. Deploy sends
+    ``timestep`` s under a ``control_dt`` s tick (the policy JSON's; 0.02 s, 50 Hz, for every
+    policy so far). Deploy sends
     :data:`deploy.lift_schedule.COMMANDS_PER_TICK` frames a tick; a tick of fewer or other
     physics steps gets the most frames up to that which its steps divide into (4 at 5 ms, one a
     step). Samples are recorded at 500 Hz, or every step where the step is longer (the
@@ -300,9 +301,12 @@ def run_episode(onnx_path: str, scenario: Scenario, leg: str, episode: int, seed
     (:class:`deploy.lift_gate.GateLimits`, a margin in m or a (margin m, wait s) pair; None:
     off). A lift either calls off is lifted again as on board. timestep: the simulator's
     physics step, s (:func:`physics_rates`)."""
+    from pathlib import Path
+
     from policy_train.policy_motion import run_policy_a2i
 
-    frames, record_every = physics_rates(timestep)
+    control_dt = json.loads(Path(onnx_path).with_suffix(".json").read_text())["control_dt"]
+    frames, record_every = physics_rates(timestep, float(control_dt))
 
     def attempt(extra_shift_s=0.0):
         effects, dist = scenario.draw(_episode_seed(seed, scenario.name, leg, episode))
