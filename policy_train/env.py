@@ -287,7 +287,7 @@ class TripodEnv:
         # the contact sensors' columns in sensordata, read after every physics step
         tm = self.tm
         self._foot_cols, self._base_cols = _columns(tm.foot_contact), _columns(tm.base_contact)
-        self._other_cols = (_columns(tm.other_contact + 1), _columns(tm.other_contact + 3))
+        self._other_cols = tuple(_columns(tm.other_contact + k) for k in (1, 2, 3))  # world f
         self._feet_geoms = np.array([m.geom(f"{leg}_foot").id for leg in MODEL_LEGS] + [m.geom("floor").id])
         # level tripod stances in static equilibrium, one per lifted leg (reference starts)
         self.ref_poses = [tripod_pose(
@@ -793,8 +793,8 @@ class TripodEnv:
         sd = self.sensordata[rows]
         fc = sd[:, self._foot_cols] > 0
         self.foot_touch[rows] |= fc
-        c1, c3 = self._other_cols
-        self.geom_touch[rows] |= np.abs(sd[:, c1]) + np.abs(sd[:, c3]) > 1.0
+        fx, fy, fz = (sd[:, c] for c in self._other_cols)
+        self.geom_touch[rows] |= fx * fx + fy * fy + fz * fz > 1.0  # |f| > 1 N
         self.base_touch[rows] |= np.any(sd[:, self._base_cols] > 0, axis=1)
         ll, phase = self.lift_leg[rows], self.phase[rows]
         held = (ll >= 0) & ((phase == 2) | (phase == 3))

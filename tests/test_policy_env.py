@@ -376,6 +376,22 @@ def test_contact_other_than_feet_ends_the_episode():
     assert not term[0]
 
 
+def test_a_contact_counts_by_its_whole_force():
+    """More than 1 N of net contact force with the floor, whatever its direction: a push along
+    world y counts as one along z does (the sensor's netforce is in the world frame)."""
+    e = TripodEnv(EnvConfig(num_envs=2, plans_per_leg=1, seed=6, threads=1,
+                            p_reference_start=0.0))
+    e.step(np.zeros((2, 12)))
+    a = int(e.tm.other_contact[0])
+    e.geom_touch[:] = False
+    e.sensordata = e.sensordata.copy()    # the batch's own rows are read-only
+    e.sensordata[:, a:a + 4] = 0.0
+    e.sensordata[0, a + 2] = 1.5          # 1.5 N along y alone
+    e.sensordata[1, a + 1:a + 4] = 0.5    # 0.87 N in all
+    e._contacts(slice(None))
+    assert e.geom_touch[0, 0] and not e.geom_touch[1, 0]
+
+
 def test_domain_randomisation_applied(env):
     assert np.ptp(env.kp_s) > 0 and np.ptp(env.friction) > 0 and np.ptp(env.strength) > 0
     lo, hi = env.cfg.dr.friction
