@@ -131,7 +131,7 @@ def test_scenarios_keep_their_places():
     assert list(SCENARIOS)[:11] == ["nominal", "training", "heavy", "slippery", "late", "weak",
                                     "joint_friction", "shoves", "noisy", "quiet", "damped_joints"]
     assert list(SCENARIOS)[11:] == ["slope", "soft_floor", "foot_imus", "backlash",
-                                     "body_imu", "all_at_once"]
+                                     "body_imu", "all_at_once", "rotor_joints"]
 
 
 def test_a_body_imu_mounted_off_reads_the_body_in_its_own_frame():
@@ -521,6 +521,25 @@ def test_the_deploy_policys_gains_need_a_short_step_or_damped_joints_at_200_hz()
     damped = run_episode(str(v51), joints, "FL", 0, periods=1, timestep=0.005)
     assert damped.success and damped.tilt_rms_deg < 3 and damped.rate_rms < 0.1
     assert damped.track_rmse < 0.05
+
+
+def test_hips_at_kd_5_stand_a_200_hz_explicit_step_on_unitrees_joints():
+    """docs/policy-format.md, "Motors": on the joints of Unitree's own MuJoCo Go2 (rotor
+    inertia, next to no damping) a PD law computed explicitly every 5 ms, as unitree_rl_gym's
+    sim-to-sim runner does at the issue's 200 Hz, drops v51 (hips at kd 8) and holds the
+    candidate v54 (hips at kd 5)."""
+    v51 = POLICY.with_name("tripod_go2_v51.onnx")
+    v54 = POLICY.parent / "candidates" / "tripod_go2_v54.onnx"
+    if not (v51.is_file() and v54.is_file()):
+        pytest.skip("no v51 or v54")
+    rj = SCENARIOS["rotor_joints"]  # its joints alone, none of the training's perturbations
+    joints = Scenario("unitree_joints", "Unitree's joint model", joint_damping=rj.joint_damping,
+                      armature=rj.armature, joint_friction=rj.joint_friction)
+    fell = run_episode(str(v51), joints, "FL", 0, periods=1, timestep=0.005)
+    assert not fell.success and "fall" in fell.causes
+    held = run_episode(str(v54), joints, "FL", 0, periods=1, timestep=0.005)
+    assert held.success and held.tilt_rms_deg < 3 and held.rate_rms < 0.1
+    assert held.track_rmse < 0.05
 
 
 @pytest.mark.parametrize("argv, message", [
