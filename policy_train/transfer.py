@@ -230,7 +230,8 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
                    foot_payload=(0.03, 0.055), backlash=(0.003, 0.0065),
                    imu_tilt_deg=(1.0, 1.5), gyro_bias=0.01),
     # the joints of Unitree's own MuJoCo Go2 (unitree_rl_gym's sim-to-sim runner; unitree_mujoco's
-    # differ only in damping 0.1): rotor inertia, next to no damping for the integrator to take
+    # carry damping 0.1 and dry friction 0.2): rotor inertia, next to no damping for the
+    # integrator to take implicitly
     _training_like("rotor_joints", "training on the joints of Unitree's own MuJoCo Go2 "
                    "(unitree_rl_gym's sim-to-sim model): armature 0.01 kg m^2, damping 0.001 "
                    "N m s/rad, dry friction 0.1 N m (none in the standard ranges)",

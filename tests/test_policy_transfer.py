@@ -526,8 +526,8 @@ def test_the_deploy_policys_gains_need_a_short_step_or_damped_joints_at_200_hz()
 def test_hips_at_kd_5_stand_a_200_hz_explicit_step_on_unitrees_joints():
     """docs/policy-format.md, "Motors": on the joints of Unitree's own MuJoCo Go2 (rotor
     inertia, next to no damping) a PD law computed explicitly every 5 ms, as unitree_rl_gym's
-    sim-to-sim runner does at the issue's 200 Hz, drops v51 (hips at kd 8) and holds the
-    candidate v54 (hips at kd 5)."""
+    sim-to-sim runner does when set to the issue's 200 Hz, drops v51 (hips at kd 8) and holds
+    the candidate v54 (hips at kd 5)."""
     v51 = POLICY.with_name("tripod_go2_v51.onnx")
     v54 = POLICY.parent / "candidates" / "tripod_go2_v54.onnx"
     if not (v51.is_file() and v54.is_file()):
