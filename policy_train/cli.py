@@ -565,6 +565,9 @@ def _dr_setting(text: str) -> tuple[str, object]:
             + (" LO,HI with LO <= HI" if n == 2 else "") + f", e.g. {default}")
     if field == "floor_tilt_deg" and parts[1] >= 30.0:  # a Go2 tripod slides well before
         raise argparse.ArgumentTypeError(f"{text!r}: floor_tilt_deg must stay under 30 deg")
+    if field == "default_cone" and parts[0] > 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: default_cone is a fraction of the "
+                                          "episodes, at most 1")
     if field == "floor_timeconst" and parts[1] > 0:
         from sim.effects import check_floor_timeconst
 

@@ -104,6 +104,11 @@ class DRConfig:
     # transfer check's `soft_floor`). At least two physics steps, or MuJoCo stiffens it
     # silently. Drawn only when on, like the tilt
     floor_timeconst: tuple[float, float] = (0.0, 0.0)
+    # the fraction of episodes whose contacts run on MuJoCo's default friction cone (pyramidal,
+    # impratio 1), as a plain URDF or MJCF load and unitree_rl_gym's model do, instead of the
+    # model's elliptic one with impratio 100 (the transfer check's `default_cone`). Drawn only
+    # when on, like the tilt
+    default_cone: float = 0.0
 
     def with_settings(self, settings: dict) -> DRConfig:
         """A copy with the named fields set (``a2i-train tripod / distill / eval --dr``; lists,

@@ -284,6 +284,10 @@ class TripodEnv:
         # every env has the model's own contact, and configurations without it keep their physics
         self._floor_geom = m.geom("floor").id
         self._floor_solref = None
+        # opt.cone / opt.impratio per env, expanded at the first episode drawn on MuJoCo's
+        # default cone (DRConfig.default_cone); the model's own until then
+        self._cone = None
+        self._cone_own = (int(m.opt.cone), float(m.opt.impratio))
         # the contact sensors' columns in sensordata, read after every physics step
         tm = self.tm
         self._foot_cols, self._base_cols = _columns(tm.foot_contact), _columns(tm.base_contact)
@@ -453,6 +457,16 @@ class TripodEnv:
                     self._floor_solref = self.batch.expand("geom_solref")
                     self.batch.expand("geom_solmix")[:, self._floor_geom] = FLOOR_SOLMIX
                 self._floor_solref[ids, self._floor_geom, 0] = rng.uniform(*dr.floor_timeconst, n)
+            if dr.default_cone > 0:  # likewise
+                if not dr.default_cone <= 1:
+                    raise ValueError(f"default_cone is a fraction of the episodes, in [0, 1], "
+                                     f"got {dr.default_cone}")
+                if self._cone is None:
+                    self._cone = (self.batch.expand("opt.cone"), self.batch.expand("opt.impratio"))
+                on = rng.random(n) < dr.default_cone
+                self._cone[0][ids] = np.where(on, int(mujoco.mjtCone.mjCONE_PYRAMIDAL),
+                                              self._cone_own[0])
+                self._cone[1][ids] = np.where(on, 1.0, self._cone_own[1])
         else:
             self.kp_s[ids] = self.kd_s[ids] = self.strength[ids] = 1.0
             self.latency[ids] = 0

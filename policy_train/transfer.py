@@ -70,6 +70,7 @@ from sim.effects import (
     FloorSoftness,
     FootFriction,
     FootPayload,
+    FrictionCone,
     LinkMass,
     MotorStrength,
     ViscousFriction,
@@ -103,6 +104,8 @@ class Scenario:
     IMU mounted turned from the base by this many degrees about an axis drawn uniformly;
     gyro_bias: rad/s, the body gyro's bias, uniform in +- per axis (both as the policy and the
     lifted leg's feed-forward sense the body, :class:`~policy_train.policy_motion.Disturbance`).
+    friction_cone: the contacts' friction cone, ``"pyramidal"`` for MuJoCo's default
+    (:class:`~sim.effects.FrictionCone`, impratio 1; None: the model's own).
     """
 
     name: str
@@ -123,6 +126,7 @@ class Scenario:
     backlash: tuple[float, float] | None = None
     imu_tilt_deg: tuple[float, float] | None = None
     gyro_bias: float = 0.0
+    friction_cone: str | None = None
 
     def draw(self, rng: np.random.Generator):
         """This episode's effects (fresh :mod:`sim.effects` objects) and
@@ -156,6 +160,8 @@ class Scenario:
             effects.append(FloorSoftness(u(self.floor_timeconst)))
         if self.foot_payload is not None:
             effects += [FootPayload(u(self.foot_payload), leg) for leg in LEGS]
+        if self.friction_cone is not None:
+            effects.append(FrictionCone(self.friction_cone))
         if self.backlash is not None:  # last: it follows the commands as the motors get them
             effects.append(Backlash(rng.uniform(*self.backlash, size=12)))
         imu = {}
@@ -237,6 +243,14 @@ SCENARIOS: dict[str, Scenario] = {s.name: s for s in [
                    "N m s/rad, dry friction 0.1 N m (none in the standard ranges)",
                    joint_damping=(0.001, 0.001), armature=(0.01, 0.01),
                    joint_friction=(0.1, 0.1)),
+    # MuJoCo's default contacts, which unitree_rl_gym's model and a plain URDF or MJCF load run
+    # on: the URDF's model and Menagerie's use an elliptic cone with impratio 100
+    _training_like("default_cone", "training on MuJoCo's default friction cone: pyramidal, "
+                   "impratio 1 (the URDF's model and Menagerie's: elliptic, impratio 100; not "
+                   "in the training)", friction_cone="pyramidal"),
+    _training_like("weak_default_cone", "training, motors x0.65-0.8, on MuJoCo's default "
+                   "friction cone (pyramidal, impratio 1)", motor_strength=(0.65, 0.8),
+                   friction_cone="pyramidal"),
 ]}
 
 

@@ -146,6 +146,7 @@ EFFECT_NAMES: tuple[str, ...] = (
     "latency", "motor_strength", "coulomb_friction", "viscous_friction", "armature", "backlash",
     "link_mass", "foot_friction", "torque_limit", "imu_bias", "imu_misalignment",
     "imu_time_offset", "packet_loss", "floor_slope", "floor_softness", "foot_payload",
+    "friction_cone",
 )
 
 ActuationLatency.name = "latency"
@@ -456,6 +457,35 @@ class FloorSoftness(Effect):
         return f"FloorSoftness({self.timeconst!r}, dampratio={self.dampratio!r})"
 
 
+_CONES = {"pyramidal": mujoco.mjtCone.mjCONE_PYRAMIDAL, "elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC}
+
+
+class FrictionCone(Effect):
+    """The contacts' friction cone as a plain MJCF or URDF load gets it: MuJoCo's default
+    ``pyramidal`` cone with ``impratio`` 1 (Unitree's own ``unitree_rl_gym`` model runs on it),
+    where :mod:`sim.model` and MuJoCo Menagerie's Go2 use an ``elliptic`` one with ``impratio``
+    100. A simulator setting a checker may leave at its default, not a property of the robot:
+    under the default cone the tripod's feet hold sideways forces less firmly
+    (docs/policy-training.md, stop 80)."""
+
+    name = "friction_cone"
+
+    def __init__(self, cone: str = "pyramidal", impratio: float = 1.0) -> None:
+        if cone not in _CONES:
+            raise ValueError(f"a friction cone is one of {', '.join(_CONES)}, got {cone!r}")
+        r = float(impratio)
+        if not (np.isfinite(r) and r >= 1.0):
+            raise ValueError(f"impratio must be >= 1, got {impratio!r}")
+        self.cone, self.impratio = cone, r
+
+    def modify_spec(self, spec: mujoco.MjSpec) -> None:
+        spec.option.cone = _CONES[self.cone]
+        spec.option.impratio = self.impratio
+
+    def __repr__(self) -> str:
+        return f"FrictionCone({self.cone!r}, impratio={self.impratio!r})"
+
+
 class FootPayload(Effect):
     """A foot IMU node (board, case, mount, the cable's end) of ``kg`` strapped to ``leg``'s foot:
     a rigid mass, a ``radius`` m solid sphere, ``offset`` m from the foot centre in the calf's
@@ -648,7 +678,7 @@ def apply_imu_effects(effects, t, gyro, accel, quat_wxyz):
 
 __all__ += [
     "EFFECT_NAMES", "MUJOCO_TIMECONST_S", "Armature", "Backlash", "CoulombFriction", "FloorSlope",
-    "FloorSoftness", "FootFriction", "FootPayload", "ImuBias", "ImuEffect", "ImuMisalignment",
-    "ImuTimeOffset", "LinkMass", "PacketLoss", "TorqueLimit", "ViscousFriction",
+    "FloorSoftness", "FootFriction", "FootPayload", "FrictionCone", "ImuBias", "ImuEffect",
+    "ImuMisalignment", "ImuTimeOffset", "LinkMass", "PacketLoss", "TorqueLimit", "ViscousFriction",
     "apply_imu_effects",
 ]

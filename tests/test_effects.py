@@ -1,6 +1,7 @@
 """The unmodelled-effects library (sim/effects.py): each effect moves the simulation the way
 its physics says, and the IMU effects transform readings as documented."""
 
+import mujoco
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -13,6 +14,7 @@ from sim.effects import (
     CoulombFriction,
     FloorSlope,
     FloorSoftness,
+    FrictionCone,
     FootFriction,
     FootPayload,
     ImuBias,
@@ -53,7 +55,8 @@ def _step_target():
 def test_names_and_classes():
     for cls in (ActuationLatency, MotorStrength, CoulombFriction, ViscousFriction, Armature,
                 Backlash, LinkMass, FootFriction, TorqueLimit, PacketLoss, ImuBias,
-                ImuMisalignment, ImuTimeOffset, FloorSlope, FloorSoftness, FootPayload):
+                ImuMisalignment, ImuTimeOffset, FloorSlope, FloorSoftness, FootPayload,
+                FrictionCone):
         assert cls.name in EFFECT_NAMES
 
 
@@ -217,6 +220,18 @@ def test_floor_softness_lets_the_feet_sink_in():
         Go2Sim(SimConfig(timestep=0.005, effects=[FloorSoftness(0.008)]))
     with pytest.raises(ValueError, match="floor"):
         Go2Sim(SimConfig(floor=False, effects=[FloorSoftness(0.04)]))
+
+
+def test_friction_cone_sets_the_models_contact_option():
+    """FrictionCone: MuJoCo's default cone (pyramidal, impratio 1) where the URDF's model
+    has an elliptic one with impratio 100; bad cones and ratios refused."""
+    own = Go2Sim(SimConfig(base="free")).model.opt
+    assert (own.cone, own.impratio) == (mujoco.mjtCone.mjCONE_ELLIPTIC, 100.0)
+    opt = Go2Sim(SimConfig(base="free", effects=[FrictionCone()])).model.opt
+    assert (opt.cone, opt.impratio) == (mujoco.mjtCone.mjCONE_PYRAMIDAL, 1.0)
+    for bad in (("round",), ("pyramidal", 0.5), ("elliptic", np.nan)):
+        with pytest.raises(ValueError, match="cone|impratio"):
+            FrictionCone(*bad)
 
 
 def test_a_floor_that_swallows_the_feet_meets_the_calves_lower_end():

@@ -1,6 +1,7 @@
 """policy_train env: shapes, action/joint order, the lifted-leg override, domain randomisation,
 terminations, and the signs of the reward terms on hand-made states."""
 
+import mujoco
 import numpy as np
 import pytest
 
@@ -473,6 +474,32 @@ def test_floor_that_gives_sinks_the_feet_and_is_drawn_only_when_on(env):
     assert np.all((tc >= 0.03) & (tc <= 0.045)) and np.ptp(tc) > 0
     with pytest.raises(ValueError, match="two physics steps"):
         standing((0.005, 0.03))
+
+
+def test_mujocos_default_cone_is_drawn_per_episode_only_when_on(env):
+    """DRConfig.default_cone: that fraction of the episodes runs on MuJoCo's default friction
+    cone (pyramidal, impratio 1) instead of the model's (elliptic, impratio 100); off by
+    default with the model's option shared; a fraction over 1 refused."""
+    assert env.batch.expanded("opt.cone") is None
+    own = (int(env.tm.model.opt.cone), float(env.tm.model.opt.impratio))
+    assert own == (int(mujoco.mjtCone.mjCONE_ELLIPTIC), 100.0)
+
+    def drawn(fraction, n=8):
+        cfg = EnvConfig(num_envs=n, plans_per_leg=1, seed=3, threads=1)
+        cfg.dr.default_cone = fraction
+        e = TripodEnv(cfg)
+        return e, e.batch.expanded("opt.cone").copy(), e.batch.expanded("opt.impratio").copy()
+
+    _, cone, imp = drawn(1.0)
+    assert np.all(cone == int(mujoco.mjtCone.mjCONE_PYRAMIDAL)) and np.all(imp == 1.0)
+    half, cone, imp = drawn(0.5, 16)
+    pyr = cone == int(mujoco.mjtCone.mjCONE_PYRAMIDAL)
+    assert 0 < pyr.sum() < 16
+    np.testing.assert_array_equal(imp, np.where(pyr, 1.0, 100.0))
+    half.reset_idx(np.arange(16))  # drawn afresh per episode
+    assert not np.array_equal(half.batch.expanded("opt.cone"), cone)
+    with pytest.raises(ValueError, match="default_cone"):
+        drawn(1.5)
 
 
 def test_floor_tilt_turns_gravity_and_is_drawn_only_when_on(env):

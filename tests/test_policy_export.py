@@ -226,6 +226,10 @@ def test_dr_settings_apply_over_the_randomisation_and_write_nothing(exported, tm
     for bad in ("floor_timeconst=0.005,0.03", "floor_timeconst=0.03,0.2", "floor_timeconst=0,0.03"):
         with pytest.raises(argparse.ArgumentTypeError, match="floor_timeconst"):
             _dr_setting(bad)
+    assert _dr_setting("default_cone=0.5") == ("default_cone", 0.5)
+    for bad in ("default_cone=1.5", "default_cone=-0.1", "default_cone=0,1"):
+        with pytest.raises(argparse.ArgumentTypeError, match="default_cone"):
+            _dr_setting(bad)
     meta = json.loads((d / "pol.json").read_text())
     env, _ = evaluation_env(meta, ("FL",), 8, seed=1, dr_set={"motor_strength": (0.7, 0.8)})
     assert np.all((env.strength >= 0.7) & (env.strength <= 0.8))

@@ -131,7 +131,8 @@ def test_scenarios_keep_their_places():
     assert list(SCENARIOS)[:11] == ["nominal", "training", "heavy", "slippery", "late", "weak",
                                     "joint_friction", "shoves", "noisy", "quiet", "damped_joints"]
     assert list(SCENARIOS)[11:] == ["slope", "soft_floor", "foot_imus", "backlash",
-                                     "body_imu", "all_at_once", "rotor_joints"]
+                                     "body_imu", "all_at_once", "rotor_joints",
+                                     "default_cone", "weak_default_cone"]
 
 
 def test_a_body_imu_mounted_off_reads_the_body_in_its_own_frame():
