@@ -465,8 +465,8 @@ class FrictionCone(Effect):
     ``pyramidal`` cone with ``impratio`` 1 (Unitree's own ``unitree_rl_gym`` model runs on it),
     where :mod:`sim.model` and MuJoCo Menagerie's Go2 use an ``elliptic`` one with ``impratio``
     100. A simulator setting a checker may leave at its default, not a property of the robot:
-    under the default cone the tripod's feet hold sideways forces less firmly
-    (docs/policy-training.md, stop 80)."""
+    on it the deploy policy loses half its lifts on weak motors (docs/policy-training.md,
+    stop 80)."""
 
     name = "friction_cone"
 
