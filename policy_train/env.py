@@ -51,7 +51,7 @@ from deploy.tracking_adapter import TrackingAdapter
 from policy_train.config import OBS_NOISE, EnvConfig
 from policy_train.model import TrainModel
 from policy_train.rewards import compute_rewards
-from sim.effects import FLOOR_SOLMIX, check_floor_timeconst
+from sim.effects import FLOOR_SOLMIX, FrictionCone, check_floor_timeconst
 from sim.tripod_pose import tripod_pose
 
 __all__ = ["LIFT_VALUES", "OBS_NOISE", "PRIV_TERMS", "PlanPool", "TripodEnv", "noise_amplitude"]
@@ -464,9 +464,9 @@ class TripodEnv:
                 if self._cone is None:
                     self._cone = (self.batch.expand("opt.cone"), self.batch.expand("opt.impratio"))
                 on = rng.random(n) < dr.default_cone
-                self._cone[0][ids] = np.where(on, int(mujoco.mjtCone.mjCONE_PYRAMIDAL),
-                                              self._cone_own[0])
-                self._cone[1][ids] = np.where(on, 1.0, self._cone_own[1])
+                mj = FrictionCone()  # MuJoCo's default contacts, as the transfer check sets them
+                self._cone[0][ids] = np.where(on, mj.mjt_cone, self._cone_own[0])
+                self._cone[1][ids] = np.where(on, mj.impratio, self._cone_own[1])
         else:
             self.kp_s[ids] = self.kd_s[ids] = self.strength[ids] = 1.0
             self.latency[ids] = 0

@@ -478,8 +478,13 @@ class FrictionCone(Effect):
             raise ValueError(f"impratio must be >= 1, got {impratio!r}")
         self.cone, self.impratio = cone, r
 
+    @property
+    def mjt_cone(self) -> int:
+        """MuJoCo's ``opt.cone`` value for this cone."""
+        return int(_CONES[self.cone])
+
     def modify_spec(self, spec: mujoco.MjSpec) -> None:
-        spec.option.cone = _CONES[self.cone]
+        spec.option.cone = self.mjt_cone
         spec.option.impratio = self.impratio
 
     def __repr__(self) -> str:
