@@ -20,6 +20,13 @@ Wrap: with ``wrap_period_ns`` (e.g. HiPNUC's u32 ms counter) forward wraps are
 unwrapped. Resets: a backward device step that is not a wrap (reboot), or a
 sample that would have arrived before it was taken (residual below
 ``-reset_tolerance_s``: the device clock jumped forward) restarts the fit.
+
+Order: ``update`` never returns a time before the previous one plus half the
+device interval between them. Without that floor, frames delivered in one read
+(one host stamp) before the line has a slope all map to that stamp, and a refit
+that lowers the line steps later samples back by up to a few ms, so samples
+could tie or run backwards at 400 Hz. Under the floor the mapping slews down to
+the new line at half the device rate instead of jumping.
 """
 
 from __future__ import annotations
@@ -58,6 +65,7 @@ class ClockMapper:
         window_s: float = 20.0,
         reset_tolerance_s: float = 0.005,
         max_drift: float = 5e-3,
+        max_slew: float = 0.5,
     ) -> None:
         if wrap_period_ns is not None and wrap_period_ns <= 0:
             raise ValueError(f"wrap_period_ns must be positive, got {wrap_period_ns}")
@@ -65,11 +73,14 @@ class ClockMapper:
             raise ValueError(f"need 0 < bin_s < window_s, got {bin_s}, {window_s}")
         if reset_tolerance_s <= 0 or max_drift <= 0:
             raise ValueError("reset_tolerance_s and max_drift must be positive")
+        if not 0 < max_slew < 1:
+            raise ValueError(f"need 0 < max_slew < 1, got {max_slew}")
         self.wrap_period_ns = wrap_period_ns
         self.bin_s = bin_s
         self.window_s = window_s
         self.reset_tolerance_s = reset_tolerance_s
         self.max_drift = max_drift
+        self.max_slew = max_slew
         self.resets = 0
         self.wraps = 0
         self.samples = 0
@@ -88,6 +99,8 @@ class ClockMapper:
         self._a = 0.0
         self._b = 0.0
         self._fitted = False
+        self._last_mapped: int | None = None  # update's previous answer, this fit
+        self._last_device = 0  # and its unwrapped device ns
 
     # -- public ------------------------------------------------------------------
 
@@ -132,7 +145,12 @@ class ClockMapper:
         return self._h0 + dd + round((self._a + self._b * x) * 1e9)
 
     def update(self, t_device_ns: int, t_host_ns: int) -> int:
-        """Add one (device stamp, host receive stamp) pair; return its mapped host ns."""
+        """Add one (device stamp, host receive stamp) pair; return its mapped host ns.
+
+        Strictly increasing for increasing device stamps (see the module's "Order"):
+        the answer is ``map`` of the stamp, or the previous answer plus
+        ``1 - max_slew`` of the device interval where that is later. A reset starts over.
+        """
         d = self.unwrap(t_device_ns)
         h = int(t_host_ns)
         self.samples += 1
@@ -160,7 +178,12 @@ class ClockMapper:
             lowest = min([self._bin_y] + [p[1] for p in self._bins])
             self._a, self._b = lowest, 0.0
             self._fitted = True
-        return self.map(d)
+        mapped = self.map(d)
+        if self._last_mapped is not None:
+            step = d - self._last_device
+            mapped = max(mapped, self._last_mapped + max(1, round(step * (1.0 - self.max_slew))))
+        self._last_mapped, self._last_device = mapped, d
+        return mapped
 
     # -- internals ---------------------------------------------------------------
 

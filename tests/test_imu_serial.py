@@ -61,6 +61,23 @@ def test_clock_mapper_batched_host_stamps():
     assert np.abs(mapped - true)[600:].max() * 1e-9 < 0.5e-3
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_clock_mapper_never_ties_or_steps_back(seed):
+    # 400 Hz, 1 ms device stamps, reads of 1-6 frames under one host stamp from the first frame
+    # on, and 5 % latency spikes: the mapped stamps the recorder interpolates on must rise.
+    dev, host, true = simulate(60e-6, seconds=8.0, rate=400.0, seed=seed, spikes=0.05)
+    dev = dev // 1_000_000 * 1_000_000
+    rng = np.random.default_rng(seed)
+    batched, k = host.copy(), 0
+    while k < len(host):
+        n = int(rng.integers(1, 7))
+        batched[k:k + n] = host[min(k + n, len(host)) - 1]
+        k += n
+    mapped = run_mapper(ClockMapper(), dev, batched)
+    assert np.all(np.diff(mapped) > 0)
+    assert np.abs(mapped - true)[1200:].max() * 1e-9 < 1.5e-3
+
+
 def test_clock_mapper_unwraps_device_counter():
     wrap = 4_000_000_000  # a 4 s counter wraps three times in 12 s
     dev, host, true = simulate(-60e-6, seed=5, dev_start_s=1.0)
@@ -87,6 +104,8 @@ def test_clock_mapper_bad_arguments():
         ClockMapper(bin_s=30.0, window_s=20.0)
     with pytest.raises(ValueError):
         ClockMapper(wrap_period_ns=0)
+    with pytest.raises(ValueError):
+        ClockMapper(max_slew=1.0)
     with pytest.raises(ValueError):
         ClockMapper().map(0)
     with pytest.raises(ValueError):
