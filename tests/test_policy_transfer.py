@@ -544,24 +544,26 @@ def test_hips_at_kd_5_stand_a_200_hz_explicit_step_on_unitrees_joints():
     assert held.track_rmse < 0.05
 
 
-def test_weak_motors_on_mujocos_default_cone_drop_v51_and_hold_v57():
+def test_weak_motors_on_mujocos_default_cone_drop_v51_and_hold_v56_and_v57():
     """docs/policy-format.md, "Contacts": on MuJoCo's default friction cone (pyramidal,
     impratio 1) a nominal FL lift on motors at 65 % drops v51, which holds it on the model's
-    elliptic cone, and holds the deploy policy v57, whose front lifts were refined with half
-    their episodes on that cone."""
+    elliptic cone, and holds the candidate v56 and the deploy policy v57, whose front lifts
+    were refined with half their episodes on that cone."""
     v51 = POLICY.with_name("tripod_go2_v51.onnx")
+    v56 = POLICY.parent / "candidates" / "tripod_go2_v56.onnx"
     v57 = POLICY.with_name("tripod_go2_v57.onnx")
-    if not (v51.is_file() and v57.is_file()):
-        pytest.skip("no v51 or v57")
+    if not (v51.is_file() and v56.is_file() and v57.is_file()):
+        pytest.skip("no v51, v56 or v57")
     own = Scenario("weak_motors", "motors at 65 %", motor_strength=(0.65, 0.65))
     default = dataclasses.replace(own, friction_cone="pyramidal")
     held = run_episode(str(v51), own, "FL", 0, periods=1)
     assert held.success and held.rate_rms < 0.1
     fell = run_episode(str(v51), default, "FL", 0, periods=1)
     assert not fell.success and "lifted foot down" in fell.causes
-    kept = run_episode(str(v57), default, "FL", 0, periods=1)
-    assert kept.success and kept.tilt_rms_deg < 3 and kept.rate_rms < 0.1
-    assert kept.track_rmse < 0.05
+    for refined in (v56, v57):
+        kept = run_episode(str(refined), default, "FL", 0, periods=1)
+        assert kept.success and kept.tilt_rms_deg < 3 and kept.rate_rms < 0.1
+        assert kept.track_rmse < 0.05
 
 
 @pytest.mark.parametrize("argv, message", [
