@@ -164,6 +164,21 @@ class PolicyMeta:
             legs=tuple(g for g in LEGS if g in legs), target_lead_max=lead_max, raw=dict(d),
         )
 
+    @property
+    def trained_latency_s(self) -> tuple[float, float] | None:
+        """(lo, hi) s: the actuation latency the policy was trained under (its training's
+        ``latency_steps`` of physics steps); None where its JSON does not say, or the training
+        drew none (randomisation off)."""
+        env = (self.raw.get("train_config") or {}).get("env") or {}
+        dr = env.get("dr") or {}
+        steps, dt = dr.get("latency_steps"), env.get("physics_dt")
+        try:
+            lo, hi = (float(v) * float(dt) for v in steps)
+        except (TypeError, ValueError):
+            return None
+        ok = np.isfinite(lo) and np.isfinite(hi) and 0 <= lo <= hi
+        return (lo, hi) if ok and dr.get("enabled", True) else None
+
     def lift_value(self, leg: str | None) -> float:
         """The ``lift_command`` term's value for ``leg`` (None: no leg lifted)."""
         return self.lift_command["none" if leg is None else check_leg(leg)]

@@ -18,12 +18,29 @@ def _retried(o: LegOutcome) -> str:
                    "shift)" if o.retried else "")
 
 
+def _delay(o: LegOutcome) -> str:
+    """The command path's delay, where the lift read it, against the policy's training."""
+    d = o.command_delay_s
+    if d is None:
+        return ""
+    line = f"\n  command delay {d * 1e3:.0f} ms (the motors' torque against the commands)"
+    if o.trained_delay_s is None:
+        return line
+    lo, hi = o.trained_delay_s
+    trained = f"{lo * 1e3:.0f}-{hi * 1e3:.0f} ms"
+    if d <= hi + 1e-9:
+        return f"{line}, within the {trained} the policy was trained at"
+    return (f"{line}: OVER the {trained} the policy was trained at; the body rocks more than "
+            "its evaluation says: look at the command path (bridge, network, its load)")
+
+
 def leg_summary(o: LegOutcome) -> str:
     """The report of one leg, as printed when its SOLVE ends."""
     out = o.payload
     if out is None or getattr(out, "result", None) is None:
-        return f"Leg {o.leg}: NO CALIBRATION WRITTEN: {o.error or 'no result'}" + _retried(o)
-    text = format_report(out.result, out.truth) + _retried(o)
+        return (f"Leg {o.leg}: NO CALIBRATION WRITTEN: {o.error or 'no result'}" + _retried(o)
+                + _delay(o))
+    text = format_report(out.result, out.truth) + _retried(o) + _delay(o)
     if out.accepted:
         files = ", ".join(str(p) for p in out.files)
         return f"{text}\n  written: {files}"

@@ -207,6 +207,11 @@ class LegOutcome:
     payload: object = None  # the solve job's result object (deploy.solve.SolveOutcome)
     retried: str | None = None  # why the first lift was called off, if it was tried again
     lift_wait_s: float = 0.0  # s the lift gate held the shift of the lift that counts
+    # s: the command path's delay the lifted leg's tracking adapter read from the motors'
+    # reported torque (None: not read: no torque reported, the adapter off, or the lift ended
+    # before its first fit); trained_delay_s: the (lo, hi) s the policy was trained under
+    command_delay_s: float | None = None
+    trained_delay_s: tuple[float, float] | None = None
     job: object = field(default=None, repr=False)  # its solve job, once started
 
 
@@ -705,6 +710,7 @@ class Session:
         if self.state is State.DAMP:
             return cmd
         if self.phase != "excite":
+            self._note_command_delay()
             self._window_end = inp.window_mark
             self._pending_solve = self.leg
             self._go(State.LOWER, "excitation done")
@@ -720,9 +726,17 @@ class Session:
         self._pending_solve = None
         log.error("calibration of %s aborted: %s", self.leg, why)
 
+    def _note_command_delay(self) -> None:
+        """The command delay the lifted leg's adapter found, onto the leg's outcome."""
+        a, o = self._adapter, self._current
+        if a is not None and o is not None and a.fitted[0] and a.delay_found[0]:
+            o.command_delay_s = float(a.delay[0])
+            o.trained_delay_s = self.meta.trained_latency_s
+
     def _lower_now(self, inp: TickInput) -> Command:
         """Abort: bring the leg from its last target back to where it stood (or, still in
         shift, just drop the lift command), with the policy balancing the body."""
+        self._note_command_delay()
         idx = sdk_indices(self.leg)
         self._abort_from = (self._prev_target[idx].copy() if self._prev_target is not None
                             else np.asarray(inp.q, dtype=float)[idx])

@@ -147,7 +147,9 @@ class TrackingAdapter:
     for a new excitation. :meth:`observe` once per control tick during the excitation (the
     measured joints against the plan at that instant, and the correction the motors were
     given); :meth:`torque` for each command frame; :meth:`lead`: how far ahead to command
-    the plan. :attr:`delay`: each row's delay, s, found by its first fit.
+    the plan. :attr:`delay`: each row's delay, s, found by its first fit; :attr:`delay_found`:
+    whether that fit read it from the motors' reported torque (False: none reported, or no
+    candidate explained it, and the delay is taken as 0).
     """
 
     _FIELDS = 5  # q_des, dq_des, ddq_des, tau_model, applied: what a sample keeps per joint
@@ -171,6 +173,7 @@ class TrackingAdapter:
         self._tp, self._pp, self._tt = (np.zeros((rows, nd)) for _ in range(3))
         self.coef = np.zeros((rows, 3, nf))
         self.delay = np.zeros(rows)  # s, each row's delay, found by its first fit
+        self.delay_found = np.zeros(rows, dtype=bool)  # ... from the reported torque
         # the lead (:meth:`lead`) moves from _lead_from to the delay over fade_s from _lead_t
         self._lead_from = np.zeros(rows)
         self._lead_t = np.full(rows, np.nan)
@@ -192,6 +195,7 @@ class TrackingAdapter:
         for a in (self._xtx, self._xty, self._sq, self._tp, self._pp, self._tt,
                   self.coef, self.delay, self._hist, self._lead_from):
             a[r] = 0.0
+        self.delay_found[r] = False
         self._lead_t[r] = np.nan
         self._hist_t[r] = np.nan
         self._t_fit[r] = np.nan
@@ -250,7 +254,7 @@ class TrackingAdapter:
             choice = np.zeros(len(part), dtype=int)
             if searching[part[0]]:
                 self._score(ip, keep, c, q[part], dq[part], tau_motor[part])
-                choice = self._best(ip)
+                choice = self._best(ip)[0]
             self._regress(ip, keep, c[np.arange(len(part)), choice], q[part], dq[part])
             self._t_sample[ip] = tp
             got.append(part)
@@ -315,16 +319,16 @@ class TrackingAdapter:
         out[now] = np.broadcast_to(hv[:, None, -1], out.shape)[now]  # no delay: exact
         return out, use
 
-    def _best(self, idx: np.ndarray) -> np.ndarray:
+    def _best(self, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(n,) the index of the candidate delay that explains the torque reported so far by
-        the rows ``idx``; 0 for a row with none reported, or whose report the best candidate
-        does not explain (``min_explained``)."""
+        the rows ``idx``, and (n,) whether it does: 0 and False for a row with none reported,
+        or whose report the best candidate does not explain (``min_explained``)."""
         pp, tt = self._pp[idx], self._tt[idx]
         rss = tt - np.where(pp > 0, self._tp[idx] ** 2 / np.maximum(pp, 1e-12), 0.0)
         best = np.argmin(rss, axis=1)
         explained = 1.0 - rss[np.arange(len(idx)), best] / np.maximum(tt[:, 0], 1e-12)
-        return np.where((pp[:, 0] > 0) & (tt[:, 0] > 0)
-                        & (explained >= self.cfg.min_explained), best, 0)
+        found = (pp[:, 0] > 0) & (tt[:, 0] > 0) & (explained >= self.cfg.min_explained)
+        return np.where(found, best, 0), found
 
     def _fit(self, idx: np.ndarray, t: np.ndarray) -> None:
         nf = len(FEATURES)
@@ -334,7 +338,9 @@ class TrackingAdapter:
         bound = np.asarray(self.cfg.bounds)
         self.coef[idx] = np.clip(coef, -bound, bound)
         first = ~self.fitted[idx]  # the delay is the first fit's, kept from then on
-        self.delay[idx] = np.where(first, self._delays[self._best(idx)], self.delay[idx])
+        best, found = self._best(idx)
+        self.delay[idx] = np.where(first, self._delays[best], self.delay[idx])
+        self.delay_found[idx] = np.where(first, found, self.delay_found[idx])
         self._lead_from[idx] = np.where(first, 0.0, self._lead_from[idx])
         self._lead_t[idx] = np.where(first, t, self._lead_t[idx])
         self._t_fit[idx] = np.where(np.isfinite(self._t_fit[idx]), self._t_fit[idx], t)

@@ -155,6 +155,20 @@ def test_observation_from_metadata_terms(policy_json):
     assert obs[48] == pytest.approx(3.0 * terms["lift_command"]["scale"])
 
 
+def test_the_latency_a_policy_was_trained_under(policy_json, tmp_path):
+    """From its training's latency_steps and physics step; None where the JSON has none."""
+    assert PolicyMeta.load(policy_json).trained_latency_s is None
+    d = json.loads(policy_json.read_text())
+    d["train_config"] = {"env": {"physics_dt": 0.005, "dr": {"enabled": True,
+                                                            "latency_steps": [0, 4]}}}
+    p = tmp_path / "lat.json"
+    p.write_text(json.dumps(d))
+    assert PolicyMeta.load(p).trained_latency_s == pytest.approx((0.0, 0.02))
+    d["train_config"]["env"]["dr"]["enabled"] = False
+    p.write_text(json.dumps(d))
+    assert PolicyMeta.load(p).trained_latency_s is None
+
+
 def _with(path, **changes):
     d = json.loads(path.read_text())
     d.update(changes)

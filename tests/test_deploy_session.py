@@ -576,6 +576,34 @@ def test_adapt_finds_the_command_delay_from_the_reported_torque_and_leads_the_pl
             checked += 1
     assert ad.delay[0] == pytest.approx(0.02)
     assert checked > 20
+    # the leg's outcome keeps it, and its report says it (the hold policy names no training)
+    out = rig.s.outcomes[0]
+    assert out.command_delay_s == pytest.approx(0.02) and out.trained_delay_s is None
+    assert "command delay 20 ms (the motors' torque against the commands)" in leg_summary(out)
+
+
+@pytest.mark.parametrize(("delay", "says"), [
+    (0.015, "command delay 15 ms (the motors' torque against the commands), within the 0-20 ms"),
+    (0.035, "command delay 35 ms (the motors' torque against the commands): OVER the 0-20 ms"),
+    (None, None)])
+def test_the_report_weighs_the_command_delay_against_the_policys_training(delay, says):
+    from deploy.session import LegOutcome
+
+    o = LegOutcome("FL", error="no result", command_delay_s=delay, trained_delay_s=(0.0, 0.02))
+    text = leg_summary(o)
+    if says is None:
+        assert "command delay" not in text
+    else:
+        assert says in text and ("look at the command path" in text) == (delay > 0.02)
+
+
+def test_the_lift_without_a_reported_torque_leaves_the_command_delay_unread(tmp_path):
+    from deploy.hold_policy import write_hold_policy
+
+    sched = LiftSchedule(shift=0.2, lift=0.2, hold=0.2, lower=0.2, periods=1, adapt=True)
+    rig = Rig(write_hold_policy(tmp_path, "ad", schedule=sched), legs=("RL",))
+    rig.run_until(State.DONE)
+    assert rig.s._adapter.fitted[0] and rig.s.outcomes[0].command_delay_s is None
 
 
 def test_feedforward_schedule_sends_the_lifted_leg_torque(tmp_path):

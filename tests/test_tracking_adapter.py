@@ -95,7 +95,7 @@ def test_a_command_delay_is_found_from_the_motor_torque_and_not_fed_forward():
     by a velocity lead, which bends the plan's faster harmonics."""
     ad = TrackingAdapter(KP, KD)
     rmse, left = _run(ad, 0.0, 0.0, 1.0, delay_ms=30, shape=True)
-    assert ad.delay[0] == pytest.approx(0.030)
+    assert ad.delay[0] == pytest.approx(0.030) and ad.delay_found[0]
     assert np.abs(ad.coef[0]).max() < 0.05 * KP * 0.030
     # commanded 30 ms ahead (its lead), the late leg plays the plan on time
     assert ad.lead(11.0)[0] == pytest.approx(0.030)
@@ -103,7 +103,7 @@ def test_a_command_delay_is_found_from_the_motor_torque_and_not_fed_forward():
     assert rmse < late / 10, (rmse, late)
     blind = TrackingAdapter(KP, KD)
     _, left_blind = _run(blind, 0.0, 0.0, 1.0, delay_ms=30, report=False, shape=True)
-    assert blind.delay[0] == 0.0
+    assert blind.delay[0] == 0.0 and not blind.delay_found[0]
     np.testing.assert_allclose(blind.coef[0, :, 0], KP * 0.030, rtol=0.25)
     assert left < 3e-4 and left_blind > 5 * left, (left, left_blind)
 
@@ -115,7 +115,7 @@ def test_damping_and_delay_together_are_told_apart():
     damping, friction, strength = 2.0, 0.2, 0.8
     ad = TrackingAdapter(KP, KD)
     _, left = _run(ad, damping, friction, strength, delay_ms=20, shape=True)
-    assert ad.delay[0] == pytest.approx(0.020)
+    assert ad.delay[0] == pytest.approx(0.020) and ad.delay_found[0]
     np.testing.assert_allclose(ad.coef[0, :, 0], damping / strength, rtol=0.1)
     _, left_plain = _run(None, damping, friction, strength, delay_ms=20, shape=True)
     assert left < left_plain / 5, (left, left_plain)
@@ -131,6 +131,10 @@ def test_no_reported_torque_keeps_the_delay_at_zero():
                    tau_motor=tau * 0.8 * dq)
     assert ad.fitted.all()
     assert ad.delay[0] == 0.0
+    # row 1's torque is the PD law's with no delay: found, 0; row 0's is not read
+    assert ad.delay[1] == 0.0 and ad.delay_found[1] and not ad.delay_found[0]
+    ad.reset([1])  # a new excitation: found again or not at all
+    assert not ad.delay_found.any()
 
 
 def test_a_reported_torque_that_is_not_the_pd_laws_keeps_the_delay_at_zero():
@@ -143,7 +147,7 @@ def test_a_reported_torque_that_is_not_the_pd_laws_keeps_the_delay_at_zero():
         q, dq, ddq = _plan(t)
         ad.observe(t, q, dq, ddq, q - 0.01 * dq, dq, 0 * ones, 0 * ones,
                    tau_motor=rng.normal(0.0, 2.0, 3))
-    assert ad.fitted[0] and ad.delay[0] == 0.0
+    assert ad.fitted[0] and ad.delay[0] == 0.0 and not ad.delay_found[0]
 
 
 def test_nothing_to_learn_leaves_the_plant_as_it_was():
