@@ -433,6 +433,11 @@ def test_robot_on_the_floor_all_legs_recover_mounting(tmp_path, slope_deg):
         robot.stop()
     assert result.fault is None, result.fault
     check_against_truth(result, robot, tmp_path, ALL_LEGS_ORDER)
+    # each lift read the command path's delay from the motors' torque: the mock's, within the
+    # latency the policies were trained under
+    for o in result.outcomes:
+        assert o.command_delay_s is not None and o.trained_delay_s is not None, o.leg
+        assert 0.0 <= o.command_delay_s <= o.trained_delay_s[1], (o.leg, o.command_delay_s)
     # every lift but the first started from a stand-up after sitting down
     states = [t[2] for t in result.transitions]
     assert states.count("REPLANT") == len(ALL_LEGS_ORDER) - 1
