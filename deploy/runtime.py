@@ -714,6 +714,9 @@ class DeployRunner:
             "final_state": self.session.state.value,
             "fault": self.session.fault or "",
             "transitions": [list(t) for t in self.transitions],
+            # s, per leg whose lift read it from the motors' torque (its report's line)
+            "command_delay_s": {o.leg: o.command_delay_s for o in self.session.outcomes
+                                if o.command_delay_s is not None},
             **self.cfg.session_metadata,
         }
         if self.cfg.truth:

@@ -438,6 +438,10 @@ def test_robot_on_the_floor_all_legs_recover_mounting(tmp_path, slope_deg):
     for o in result.outcomes:
         assert o.command_delay_s is not None and o.trained_delay_s is not None, o.leg
         assert 0.0 <= o.command_delay_s <= o.trained_delay_s[1], (o.leg, o.command_delay_s)
+    from hw.mcap_io import read_mcap_metadata
+
+    recorded = read_mcap_metadata(result.mcap_path)["a2i/session"]["command_delay_s"]
+    assert recorded == {o.leg: o.command_delay_s for o in result.outcomes}
     # every lift but the first started from a stand-up after sitting down
     states = [t[2] for t in result.transitions]
     assert states.count("REPLANT") == len(ALL_LEGS_ORDER) - 1
